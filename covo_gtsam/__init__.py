@@ -1,0 +1,1 @@
+"""covo-gtsam: error-aware RGB-D visual odometry on GTSAM."""
