@@ -1,0 +1,72 @@
+"""Conversions of a relative-pose covariance between parameterisations.
+
+The package's covariance is GTSAM's: the 6x6 covariance of ``xi = [omega, v]`` (rotation first,
+radians and metres) with the right (body-frame) perturbation ``T_true = T_est * Exp(xi)``.
+
+The thesis parameterises a pose by ``(t, q_v)``: the translation ``t`` (metres) of ``T_k,k1`` and
+the vector part ``q_v = (qx, qy, qz)`` of its unit quaternion (``qw >= 0``; a half-angle quantity,
+dimensionless). To first order at ``T = (R, q)``::
+
+    d t   = R v
+    d q_v = 1/2 (qw I + [q_v]x) omega
+
+so ``Q_tq = G Sigma G^T`` with ``G = [[0, R], [1/2 (qw I + [q_v]x), 0]]`` (rows ``t, q_v``,
+columns ``omega, v``). ``G`` is invertible while ``qw > 0`` (rotation below 180 degrees).
+
+ROS ``PoseWithCovariance`` orders ``[x y z rot_x rot_y rot_z]`` with the perturbation in the
+parent frame (left: ``T_true = Exp(xi') * T_est``); ``xi'_(rot, trans) = Ad(T) xi`` in GTSAM's
+order, so ``Sigma_ros = P Ad(T) Sigma Ad(T)^T P^T`` with ``P`` swapping the two 3-blocks.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from .geometry import matrix_to_quat, skew
+
+_SWAP = np.block([[np.zeros((3, 3)), np.eye(3)], [np.eye(3), np.zeros((3, 3))]])
+
+
+def tq_jacobian(pose: gtsam.Pose3) -> np.ndarray:
+    """``G = d(t, q_v) / d(omega, v)`` (6x6) at ``pose`` for the right perturbation."""
+    R = pose.rotation().matrix()
+    q = matrix_to_quat(R)
+    qv, qw = q[:3], q[3]
+    G = np.zeros((6, 6))
+    G[:3, 3:] = R
+    G[3:, :3] = 0.5 * (qw * np.eye(3) + skew(qv))
+    return G
+
+
+def tangent_to_tq(cov: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
+    """Thesis ``Q_tq`` (order ``tx ty tz qx qy qz``) from a GTSAM tangent covariance."""
+    G = tq_jacobian(pose)
+    return G @ cov @ G.T
+
+
+def tq_to_tangent(cov_tq: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
+    """GTSAM tangent covariance from a thesis ``Q_tq``; inverse of :func:`tangent_to_tq`."""
+    Gi = np.linalg.inv(tq_jacobian(pose))
+    return Gi @ cov_tq @ Gi.T
+
+
+def tangent_to_ros(cov: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
+    """ROS ``PoseWithCovariance`` covariance ``[x y z rot_x rot_y rot_z]`` in the parent frame."""
+    A = _SWAP @ pose.AdjointMap()
+    return A @ cov @ A.T
+
+
+def ros_to_tangent(cov_ros: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
+    """GTSAM tangent covariance from a ROS ``PoseWithCovariance`` covariance; inverse of the above."""
+    A = np.linalg.inv(_SWAP @ pose.AdjointMap())
+    return A @ cov_ros @ A.T
+
+
+def compose_covariance(T_a: gtsam.Pose3, cov_a: np.ndarray, T_b: gtsam.Pose3, cov_b: np.ndarray) -> np.ndarray:
+    """First-order covariance of ``T_a * T_b`` for independent ``T_a``, ``T_b`` (right perturbations).
+
+    ``T_a Exp(a) T_b Exp(b) = T_a T_b Exp(Ad(T_b^-1) a + b)``.
+    """
+    A = T_b.inverse().AdjointMap()
+    return A @ cov_a @ A.T + cov_b

@@ -1,0 +1,216 @@
+"""Relative pose and its covariance from matched 3D point pairs with per-point covariances.
+
+:func:`estimate_relative_pose` solves the two-way point-transfer problem with GTSAM's
+Levenberg-Marquardt on one ``Pose3`` key holding ``T_k,k1`` (maps points of frame k+1 into frame
+k) and reads the 6x6 covariance from ``gtsam.Marginals`` (tangent ``[rx ry rz tx ty tz]``, right
+perturbation ``T_true = T_est * Exp(xi)``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from .covariance import tangent_to_tq
+from .errors import (
+    CovarianceError,
+    DegenerateGeometryError,
+    EstimationError,
+    InputError,
+    InsufficientPairsError,
+)
+from .factors import WEIGHTINGS, residual_covariances, transfer_factor, whitened_system, whitening
+from .geometry import rigid_fit, rotation_angle
+
+#: Key of the relative pose in the estimator's graph.
+POSE_KEY = gtsam.symbol("T", 0)
+#: Smallest eigenvalue ratio of the information matrix before the geometry counts as degenerate.
+MIN_INFO_RATIO = 1e-12
+
+
+@dataclass
+class RelativePoseResult:
+    """Estimated ``T_k,k1`` with its covariance.
+
+    Attributes:
+        pose: ``gtsam.Pose3`` T_k,k1, maps points of frame k+1 into frame k.
+        covariance: 6x6, GTSAM tangent ``[rx ry rz tx ty tz]`` (rad, m), right perturbation,
+            ``scale`` times the ``gtsam.Marginals`` covariance.
+        information: 6x6 ``J^T W J`` at the solution (unscaled), same tangent.
+        scale: the factor phi applied to the marginal covariance (thesis 5.2.2; 1 = none).
+        weighting: ``"consistent"`` or ``"thesis"``.
+        iterations: Levenberg-Marquardt iterations summed over re-weighting passes.
+        final_error: GTSAM graph error ``0.5 * sum(e^2)`` of the whitened residuals at the solution.
+        num_pairs: number of point pairs used.
+    """
+
+    pose: gtsam.Pose3
+    covariance: np.ndarray
+    information: np.ndarray
+    scale: float
+    weighting: str
+    iterations: int
+    final_error: float
+    num_pairs: int
+    residual_covariances: tuple[np.ndarray, np.ndarray] = field(repr=False)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous matrix of :attr:`pose`."""
+        return self.pose.matrix()
+
+    @property
+    def covariance_tq(self) -> np.ndarray:
+        """The thesis's ``Q_tq`` (4.20): covariance of ``(tx, ty, tz, qx, qy, qz)``, scaled by phi.
+
+        First-order propagation of the point covariances through the residuals' Jacobian with
+        respect to ``(t, q_v)``; equal to :func:`covo_gtsam.covariance.tangent_to_tq` of
+        :attr:`covariance`.
+        """
+        return tangent_to_tq(self.covariance, self.pose)
+
+    def noise_model(self) -> gtsam.noiseModel.Gaussian:
+        """Gaussian noise model with exactly :attr:`covariance`."""
+        return gtsam.noiseModel.Gaussian.Covariance(self.covariance)
+
+    def between_factor(self, key_k: int, key_k1: int) -> gtsam.BetweenFactorPose3:
+        """``BetweenFactorPose3(key_k, key_k1, T_k,k1)`` whose noise has exactly :attr:`covariance`."""
+        return gtsam.BetweenFactorPose3(key_k, key_k1, self.pose, self.noise_model())
+
+
+def validate_inputs(X_k, X_k1, Q_k, Q_k1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Check shapes, finiteness, symmetry and positive definiteness; return float64 arrays."""
+    arrays = []
+    for name, a, shape in (("X_k", X_k, (3,)), ("X_k1", X_k1, (3,)), ("Q_k", Q_k, (3, 3)), ("Q_k1", Q_k1, (3, 3))):
+        try:
+            a = np.asarray(a, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{name} is not a numeric array") from exc
+        if a.ndim != 1 + len(shape) or a.shape[1:] != shape:
+            raise InputError(f"{name} must have shape (N, {', '.join(map(str, shape))}), got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise InputError(f"{name} contains NaN or inf")
+        arrays.append(a)
+    X_k, X_k1, Q_k, Q_k1 = arrays
+    n = X_k.shape[0]
+    if not (X_k1.shape[0] == Q_k.shape[0] == Q_k1.shape[0] == n):
+        raise InputError(
+            f"inputs disagree on the number of pairs: X_k {n}, X_k1 {X_k1.shape[0]}, "
+            f"Q_k {Q_k.shape[0]}, Q_k1 {Q_k1.shape[0]}"
+        )
+    for name, Q in (("Q_k", Q_k), ("Q_k1", Q_k1)):
+        asym = np.abs(Q - np.swapaxes(Q, 1, 2)).max(initial=0.0)
+        if asym > 1e-9 * max(np.abs(Q).max(initial=0.0), 1e-300):
+            raise InputError(f"{name} is not symmetric (max asymmetry {asym:.3g})")
+        if n and np.linalg.eigvalsh(Q).min() <= 0.0:
+            bad = int(np.argmin(np.linalg.eigvalsh(Q).min(axis=1)))
+            raise InputError(f"{name}[{bad}] is not positive definite")
+    return X_k, X_k1, Q_k, Q_k1
+
+
+def initial_guess(X_k: np.ndarray, X_k1: np.ndarray, Q_k: np.ndarray, Q_k1: np.ndarray) -> gtsam.Pose3:
+    """Closed-form rigid fit ``X_k ≈ R X_k1 + t`` weighted by ``1 / trace(Q_k + Q_k1)``."""
+    w = 1.0 / (np.trace(Q_k, axis1=1, axis2=2) + np.trace(Q_k1, axis1=1, axis2=2))
+    R, t = rigid_fit(X_k, X_k1, w)
+    return gtsam.Pose3(gtsam.Rot3(R), t)
+
+
+def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-12)
+    return params
+
+
+def estimate_relative_pose(
+    X_k: np.ndarray,
+    X_k1: np.ndarray,
+    Q_k: np.ndarray,
+    Q_k1: np.ndarray,
+    weighting: str = "consistent",
+    scale: float = 1.0,
+    initial: gtsam.Pose3 | None = None,
+    max_iterations: int = 50,
+    max_reweights: int = 4,
+) -> RelativePoseResult:
+    """Estimate ``T_k,k1`` and its covariance from N matched point pairs.
+
+    Args:
+        X_k, X_k1: (N, 3) matched points in camera frames k and k+1 (metres).
+        Q_k, Q_k1: (N, 3, 3) their covariances (m^2), symmetric positive definite.
+        weighting: ``"consistent"`` (default) or ``"thesis"`` (4.16); see :mod:`covo_gtsam.factors`.
+        scale: phi, multiplies the returned covariance (thesis uses 16; default 1).
+        initial: initial guess of T_k,k1; a weighted closed-form rigid fit if None.
+        max_iterations: Levenberg-Marquardt iterations per pass.
+        max_reweights: passes of the ``consistent`` weighting, each re-evaluating the residual
+            covariances at the latest rotation until it changes by less than 1e-9 rad.
+
+    Raises:
+        InputError: wrong shapes, NaN/inf, non-symmetric or non-positive-definite covariances.
+        InsufficientPairsError: fewer than 3 pairs.
+        DegenerateGeometryError: the pairs do not constrain all 6 degrees of freedom.
+        CovarianceError: GTSAM could not compute a valid marginal covariance.
+    """
+    if weighting not in WEIGHTINGS:
+        raise InputError(f"unknown weighting {weighting!r}; choose one of {WEIGHTINGS}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(f"scale must be a positive finite number, got {scale!r}")
+    X_k, X_k1, Q_k, Q_k1 = validate_inputs(X_k, X_k1, Q_k, Q_k1)
+    n = X_k.shape[0]
+    if n < 3:
+        raise InsufficientPairsError(f"need at least 3 point pairs, got {n}")
+
+    pose = initial_guess(X_k, X_k1, Q_k, Q_k1) if initial is None else initial
+    if not np.all(np.isfinite(pose.matrix())):
+        raise DegenerateGeometryError("the closed-form initial fit is not finite")
+
+    iterations = 0
+    passes = max_reweights if weighting == "consistent" else 1
+    for _ in range(passes):
+        R_w = pose.rotation().matrix()
+        C_b, C_f = residual_covariances(Q_k, Q_k1, weighting, R_w)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(transfer_factor(POSE_KEY, X_k, X_k1, C_b, C_f))
+        values = gtsam.Values()
+        values.insert(POSE_KEY, pose)
+        try:
+            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, _lm_params(max_iterations))
+            solution = optimizer.optimize()
+        except RuntimeError as exc:
+            raise DegenerateGeometryError(f"Levenberg-Marquardt failed: {exc}") from exc
+        iterations += optimizer.iterations()
+        pose = solution.atPose3(POSE_KEY)
+        if not np.all(np.isfinite(pose.matrix())):
+            raise EstimationError("Levenberg-Marquardt returned a non-finite pose")
+        if rotation_angle(R_w.T @ pose.rotation().matrix()) < 1e-9:
+            break
+
+    e, J = whitened_system(pose.rotation().matrix(), pose.translation(), X_k, X_k1, whitening(C_b), whitening(C_f))
+    information = J.T @ J
+    eig = np.linalg.eigvalsh(information)
+    if not np.all(np.isfinite(eig)) or eig[0] <= MIN_INFO_RATIO * max(eig[-1], 1e-300):
+        raise DegenerateGeometryError(
+            f"the {n} point pairs do not constrain all 6 degrees of freedom "
+            f"(information eigenvalue ratio {eig[0] / max(eig[-1], 1e-300):.2e}); collinear or coincident points?"
+        )
+    try:
+        marginal = gtsam.Marginals(graph, solution).marginalCovariance(POSE_KEY)
+    except RuntimeError as exc:
+        raise CovarianceError(f"GTSAM could not compute the marginal covariance: {exc}") from exc
+    cov = scale * 0.5 * (marginal + marginal.T)
+    if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov)[0] <= 0.0:
+        raise CovarianceError("the marginal covariance is not finite and positive definite")
+    return RelativePoseResult(
+        pose=pose,
+        covariance=cov,
+        information=information,
+        scale=float(scale),
+        weighting=weighting,
+        iterations=int(iterations),
+        final_error=float(0.5 * e @ e),
+        num_pairs=n,
+        residual_covariances=(C_b, C_f),
+    )

@@ -1,0 +1,184 @@
+"""Two-way point-transfer residuals and the GTSAM factors built on them.
+
+For a matched pair of camera-frame points ``X_k`` (frame k) and ``X_k1`` (frame k+1) and the
+relative pose ``T = T_k,k1 = (R, t)`` that maps points of frame k+1 into frame k::
+
+    backward  r_b = X_k  - (R X_k1 + t)          (4.11)-(4.13)
+    forward   r_f = X_k1 - R^T (X_k - t)         (4.14)-(4.15)
+
+Jacobians are taken with respect to GTSAM's right (body-frame) perturbation
+``T' = T * Exp(xi)``, ``xi = [omega, v]`` (rotation first)::
+
+    d r_b / d xi = [ R [X_k1]x ,  -R ]
+    d r_f / d xi = [ -[Y]x     ,   I ]      with  Y = R^T (X_k - t)
+
+Weightings (the covariance assigned to each residual, see ``docs/derivation.md``):
+
+``thesis``
+    exactly (4.16): ``r_b`` with ``Q_k1`` and ``r_f`` with ``Q_k``.
+``consistent`` (default)
+    The true first-order noise of ``r_b`` is ``S_b = Q_k + R Q_k1 R^T`` and, because
+    ``r_f = -R^T r_b`` exactly, that of ``r_f`` is ``S_f = R^T S_b R = Q_k1 + R^T Q_k R``. The two
+    residuals carry the same information, so each gets ``2 S``: the two-way cost then equals the
+    one-way Mahalanobis cost ``r_b^T S_b^-1 r_b`` and ``(J^T W J)^-1`` is the right covariance.
+    ``S`` depends on ``R``; it is evaluated at a fixed rotation ``R_w`` (the estimator re-evaluates
+    it at the solution until it stops changing), so within one factor the noise is a fixed
+    Gaussian and the Jacobians above are exact.
+
+Factors come in two forms with the same residuals:
+
+* per pair (:func:`pair_factor`, :func:`pair_between_factor`): 6-dim error ``[r_b, r_f]`` with a
+  ``gtsam.noiseModel.Gaussian`` of covariance ``blockdiag(C_b, C_f)``;
+* vectorised over all pairs of a frame pair (:func:`transfer_factor`,
+  :func:`transfer_between_factor`): 6N-dim pre-whitened error with a unit noise model, one Python
+  callback per linearisation instead of N (the hot path).
+
+Unary factors act on a relative-pose key holding ``T_k,k1``; binary factors on two absolute pose
+keys ``x_k``, ``x_k1`` (world-from-camera) with ``T = x_k^-1 x_k1``.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import gtsam
+import numpy as np
+
+from .errors import InputError
+from .geometry import skew
+
+WEIGHTINGS = ("consistent", "thesis")
+
+
+def transfer_residuals(R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Backward and forward residuals ``(r_b, r_f)``, each (N, 3) metres."""
+    r_b = X_k - (X_k1 @ R.T + t)
+    r_f = X_k1 - (X_k - t) @ R
+    return r_b, r_f
+
+
+def transfer_jacobians(R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians (N, 3, 6) of ``r_b`` and ``r_f`` w.r.t. the right perturbation ``[omega, v]``."""
+    n = X_k.shape[0]
+    J_b = np.empty((n, 3, 6))
+    J_b[:, :, :3] = R @ skew(X_k1)
+    J_b[:, :, 3:] = -R
+    J_f = np.zeros((n, 3, 6))
+    J_f[:, :, :3] = -skew((X_k - t) @ R)
+    J_f[:, :, 3:] = np.eye(3)
+    return J_b, J_f
+
+
+def residual_covariances(
+    Q_k: np.ndarray, Q_k1: np.ndarray, weighting: str = "consistent", R_w: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Covariances ``(C_b, C_f)`` (N, 3, 3) assigned to ``r_b`` and ``r_f`` by a weighting.
+
+    ``R_w`` is the rotation at which the ``consistent`` weighting is evaluated (identity if None).
+    """
+    if weighting == "thesis":
+        return Q_k1, Q_k
+    if weighting == "consistent":
+        R = np.eye(3) if R_w is None else np.asarray(R_w, dtype=float)
+        S_b = Q_k + R @ Q_k1 @ R.T
+        S_f = Q_k1 + R.T @ Q_k @ R
+        return 2.0 * S_b, 2.0 * S_f
+    raise InputError(f"unknown weighting {weighting!r}; choose one of {WEIGHTINGS}")
+
+
+def whitening(C: np.ndarray) -> np.ndarray:
+    """Matrices ``W`` (N, 3, 3) with ``W^T W = C^-1`` (inverse Cholesky factor) for SPD ``C``."""
+    try:
+        L = np.linalg.cholesky(C)
+    except np.linalg.LinAlgError as exc:
+        raise InputError("a point covariance is not positive definite") from exc
+    return np.linalg.inv(L)
+
+
+def whitened_system(
+    R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.ndarray, W_b: np.ndarray, W_f: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened stacked error (6N,) and Jacobian (6N, 6), pair-major ``[W_b r_b, W_f r_f]``."""
+    r_b, r_f = transfer_residuals(R, t, X_k, X_k1)
+    J_b, J_f = transfer_jacobians(R, t, X_k, X_k1)
+    n = X_k.shape[0]
+    e = np.empty((n, 6))
+    e[:, :3] = np.einsum("nij,nj->ni", W_b, r_b)
+    e[:, 3:] = np.einsum("nij,nj->ni", W_f, r_f)
+    J = np.empty((n, 6, 6))
+    J[:, :3] = W_b @ J_b
+    J[:, 3:] = W_f @ J_f
+    return e.reshape(-1), J.reshape(-1, 6)
+
+
+def between_jacobian(T: gtsam.Pose3) -> np.ndarray:
+    """d(x_k^-1 x_k1)/d(x_k) for right perturbations, i.e. ``-Ad(T^-1)`` with T = x_k^-1 x_k1."""
+    return -T.inverse().AdjointMap()
+
+
+def _custom_factor(
+    keys: Sequence[int], noise: gtsam.noiseModel.Base, X_k: np.ndarray, X_k1: np.ndarray, W_b: np.ndarray, W_f: np.ndarray
+) -> gtsam.CustomFactor:
+    X_k = np.ascontiguousarray(X_k, dtype=float)
+    X_k1 = np.ascontiguousarray(X_k1, dtype=float)
+    binary = len(keys) == 2
+    k0 = keys[0]
+    k1 = keys[-1]
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        if binary:
+            T = values.atPose3(k0).between(values.atPose3(k1))
+        else:
+            T = values.atPose3(k0)
+        e, J = whitened_system(T.rotation().matrix(), T.translation(), X_k, X_k1, W_b, W_f)
+        if H is not None:
+            if binary:
+                H[0] = J @ between_jacobian(T)
+                H[1] = J
+            else:
+                H[0] = J
+        return e
+
+    return gtsam.CustomFactor(noise, gtsam.KeyVector(list(keys)), error)
+
+
+def transfer_factor(
+    key: int, X_k: np.ndarray, X_k1: np.ndarray, C_b: np.ndarray, C_f: np.ndarray
+) -> gtsam.CustomFactor:
+    """Vectorised unary factor over all N pairs on the relative-pose key ``T_k,k1``."""
+    n = X_k.shape[0]
+    return _custom_factor([key], gtsam.noiseModel.Unit.Create(6 * n), X_k, X_k1, whitening(C_b), whitening(C_f))
+
+
+def transfer_between_factor(
+    key_k: int, key_k1: int, X_k: np.ndarray, X_k1: np.ndarray, C_b: np.ndarray, C_f: np.ndarray
+) -> gtsam.CustomFactor:
+    """Vectorised binary factor over all N pairs on absolute poses ``x_k``, ``x_k1``."""
+    n = X_k.shape[0]
+    return _custom_factor(
+        [key_k, key_k1], gtsam.noiseModel.Unit.Create(6 * n), X_k, X_k1, whitening(C_b), whitening(C_f)
+    )
+
+
+def _pair_noise(C_b: np.ndarray, C_f: np.ndarray) -> gtsam.noiseModel.Gaussian:
+    C = np.zeros((6, 6))
+    C[:3, :3] = C_b
+    C[3:, 3:] = C_f
+    return gtsam.noiseModel.Gaussian.Covariance(C)
+
+
+_EYE = np.eye(3)[None]
+
+
+def pair_factor(key: int, X_k: np.ndarray, X_k1: np.ndarray, C_b: np.ndarray, C_f: np.ndarray) -> gtsam.CustomFactor:
+    """Unary factor of one pair (points (3,), covariances (3, 3)) with per-point Gaussian noise."""
+    return _custom_factor([key], _pair_noise(C_b, C_f), np.reshape(X_k, (1, 3)), np.reshape(X_k1, (1, 3)), _EYE, _EYE)
+
+
+def pair_between_factor(
+    key_k: int, key_k1: int, X_k: np.ndarray, X_k1: np.ndarray, C_b: np.ndarray, C_f: np.ndarray
+) -> gtsam.CustomFactor:
+    """Binary factor of one pair on absolute poses ``x_k``, ``x_k1`` with per-point Gaussian noise."""
+    return _custom_factor(
+        [key_k, key_k1], _pair_noise(C_b, C_f), np.reshape(X_k, (1, 3)), np.reshape(X_k1, (1, 3)), _EYE, _EYE
+    )

@@ -1,0 +1,144 @@
+"""Small rigid-body helpers on numpy arrays.
+
+Conventions used throughout the package:
+
+* A pose is a 4x4 homogeneous matrix ``T_a_b`` (or a ``gtsam.Pose3``) that maps points
+  expressed in frame *b* into frame *a*: ``X_a = R X_b + t``.
+* Quaternions are stored in TUM / ROS order ``(qx, qy, qz, qw)`` (Hamilton convention,
+  scalar last). ``gtsam.Rot3.Quaternion(w, x, y, z)`` takes the scalar first; conversions
+  go through this module so the order is decided in one place.
+* Tangent vectors of SE(3) follow GTSAM: ``xi = [omega, v]`` (rotation first, then
+  translation), with the right (body-frame) perturbation ``T' = T * Exp(xi)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices: ``skew(a) @ b == np.cross(a, b)``; (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices from unit quaternions ``(qx, qy, qz, qw)``; (..., 4) -> (..., 3, 3).
+
+    The quaternion is normalised first.
+    """
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty(q.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    out[..., 0, 1] = 2 * (x * y - z * w)
+    out[..., 0, 2] = 2 * (x * z + y * w)
+    out[..., 1, 0] = 2 * (x * y + z * w)
+    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    out[..., 1, 2] = 2 * (y * z - x * w)
+    out[..., 2, 0] = 2 * (x * z - y * w)
+    out[..., 2, 1] = 2 * (y * z + x * w)
+    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return out
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(qx, qy, qz, qw)`` with ``qw >= 0`` from rotation matrices.
+
+    (..., 3, 3) -> (..., 4). Uses the numerically stable branch per element.
+    """
+    R = np.asarray(R, dtype=float)
+    shape = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    q = np.empty((R.shape[0], 4))
+    tr = np.trace(R, axis1=1, axis2=2)
+    for i in range(R.shape[0]):
+        m = R[i]
+        if tr[i] > 0:
+            s = 2.0 * np.sqrt(1.0 + tr[i])
+            q[i] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+            q[i] = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+        elif m[1, 1] > m[2, 2]:
+            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+            q[i] = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+        else:
+            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+            q[i] = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return q.reshape(shape + (4,))
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous matrices from rotations (..., 3, 3) and translations (..., 3)."""
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    T = np.zeros(R.shape[:-2] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def pose_from_tum(row: np.ndarray) -> np.ndarray:
+    """4x4 poses from TUM rows ``(tx, ty, tz, qx, qy, qz, qw)``; (..., 7) -> (..., 4, 4)."""
+    row = np.asarray(row, dtype=float)
+    return make_pose(quat_to_matrix(row[..., 3:7]), row[..., 0:3])
+
+
+def pose_to_tum(T: np.ndarray) -> np.ndarray:
+    """TUM rows ``(tx, ty, tz, qx, qy, qz, qw)`` from 4x4 poses; (..., 4, 4) -> (..., 7)."""
+    T = np.asarray(T, dtype=float)
+    return np.concatenate([T[..., :3, 3], matrix_to_quat(T[..., :3, :3])], axis=-1)
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of 4x4 rigid transforms, (..., 4, 4)."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    Rt = np.swapaxes(R, -1, -2)
+    return make_pose(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle in radians of rotation matrices (..., 3, 3), in [0, pi]."""
+    R = np.asarray(R, dtype=float)
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def rigid_fit(A: np.ndarray, B: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares rigid transform with ``A ≈ R B + t`` (Kabsch / Umeyama, no scale).
+
+    Works on one problem, A and B of shape (N, 3), or on a batch, (H, N, 3) each (e.g. RANSAC
+    hypotheses). Returns ``R`` (..., 3, 3) with det +1 and ``t`` (..., 3).
+    """
+    A = np.asarray(A, dtype=float)
+    B = np.asarray(B, dtype=float)
+    if weights is None:
+        w = np.ones(A.shape[:-1])
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=float), A.shape[:-1])
+    w = w / np.sum(w, axis=-1, keepdims=True)
+    ca = np.einsum("...n,...ni->...i", w, A)
+    cb = np.einsum("...n,...ni->...i", w, B)
+    H = np.einsum("...n,...ni,...nj->...ij", w, B - cb[..., None, :], A - ca[..., None, :])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+    D = np.zeros(H.shape)
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = np.where(d == 0, 1.0, d)
+    R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    t = ca - np.einsum("...ij,...j->...i", R, cb)
+    return R, t

@@ -1,0 +1,156 @@
+"""Per-point uncertainty: conic-ray pixel noise plus the Kinect depth-noise model.
+
+Each 3D point measured by an RGB-D camera is ``X = F_bp(u, v, Z)`` (4.3). Its covariance in the
+camera frame (metres squared) is the first-order propagation (4.6), with the Jacobian the right
+way round::
+
+    Q_xyz = J_bp Q_uvz J_bp^T,    Q_uvz = diag(sigma_u^2, sigma_v^2, sigma_Z(Z, theta)^2)
+
+where ``J_bp = d(X, Y, Z)/d(u, v, Z)`` (4.5). ``theta`` is the angle (radians) between the
+surface normal and the viewing ray; 0 when unknown.
+
+The models are small dataclasses so that another sensor's model can be plugged in: anything with
+``sigma(z, theta)`` works as a depth model and anything with ``sigma(theta)`` (pixels) as a
+lateral model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .camera import Camera
+
+_HALF_PI = np.pi / 2.0
+#: Angles are clipped below 90 deg so the hyperbolic terms stay finite (radians).
+MAX_THETA = np.deg2rad(89.0)
+
+
+class DepthModel(Protocol):
+    def sigma(self, z: np.ndarray, theta: np.ndarray | float = 0.0) -> np.ndarray:
+        """Axial standard deviation (metres) at depth ``z`` (metres) and surface angle ``theta``."""
+
+
+@dataclass(frozen=True)
+class PixelNoise:
+    """Conic-ray pixel noise: isotropic Gaussian on the image plane, standard deviations in pixels."""
+
+    sigma_u: float = 8.0
+    sigma_v: float = 8.0
+
+
+@dataclass(frozen=True)
+class KinectAxialNoise:
+    """Kinect v1 axial (depth) noise of Nguyen, Izadi and Lovell (2012), thesis (4.7)/(4.8).
+
+    ``sigma_Z = a + b (Z - z0)^2`` metres, plus ``c / sqrt(Z) * theta^2 / (pi/2 - theta)^2``
+    for ``theta > theta_max`` (60 deg). Below 10 deg the 10-60 deg fit is used unchanged.
+    """
+
+    a: float = 0.0012
+    b: float = 0.0019
+    z0: float = 0.4
+    c: float = 0.0001
+    theta_max: float = np.deg2rad(60.0)
+
+    def sigma(self, z: np.ndarray, theta: np.ndarray | float = 0.0) -> np.ndarray:
+        z = np.asarray(z, dtype=float)
+        theta = np.minimum(np.broadcast_to(np.asarray(theta, dtype=float), z.shape), MAX_THETA)
+        s = self.a + self.b * (z - self.z0) ** 2
+        steep = theta > self.theta_max
+        extra = self.c / np.sqrt(z) * theta**2 / (_HALF_PI - theta) ** 2
+        return np.where(steep, s + extra, s)
+
+
+@dataclass(frozen=True)
+class KinectLateralNoise:
+    """Kinect v1 lateral noise (4.9): ``sigma_L = a + b * theta / (pi/2 - theta)`` pixels."""
+
+    a: float = 0.8
+    b: float = 0.035
+
+    def sigma(self, theta: np.ndarray | float = 0.0) -> np.ndarray:
+        theta = np.minimum(np.asarray(theta, dtype=float), MAX_THETA)
+        return self.a + self.b * theta / (_HALF_PI - theta)
+
+
+@dataclass(frozen=True)
+class PointNoiseModel:
+    """Everything needed to turn pixel + depth measurements into 3x3 point covariances.
+
+    ``lateral`` (optional) adds the depth image's lateral noise to the pixel variance, for a
+    registration error between colour and depth; the thesis leaves it out (``None``).
+    """
+
+    pixel: PixelNoise = PixelNoise()
+    depth: DepthModel = KinectAxialNoise()
+    lateral: KinectLateralNoise | None = None
+
+    def uvz_covariances(self, z: np.ndarray, theta: np.ndarray | float = 0.0) -> np.ndarray:
+        """Diagonal ``Q_uvz`` (N, 3, 3) of (4.10): pixel variances (px^2) and depth variance (m^2)."""
+        z = np.asarray(z, dtype=float)
+        n = z.shape[0]
+        var_u = np.full(n, self.pixel.sigma_u**2)
+        var_v = np.full(n, self.pixel.sigma_v**2)
+        if self.lateral is not None:
+            lat = np.broadcast_to(self.lateral.sigma(theta), (n,)) ** 2
+            var_u = var_u + lat
+            var_v = var_v + lat
+        Q = np.zeros((n, 3, 3))
+        Q[:, 0, 0] = var_u
+        Q[:, 1, 1] = var_v
+        Q[:, 2, 2] = self.depth.sigma(z, theta) ** 2
+        return Q
+
+    def point_covariances(
+        self, camera: Camera, uv: np.ndarray, z: np.ndarray, theta: np.ndarray | float = 0.0
+    ) -> np.ndarray:
+        """Camera-frame covariances ``Q_xyz`` (N, 3, 3) in m^2 of points at undistorted ``uv``, depth ``z``."""
+        J = camera.backprojection_jacobian(uv, z)
+        return propagate(J, self.uvz_covariances(z, theta))
+
+
+def propagate(J: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """First-order propagation ``J Q J^T`` for stacks (N, m, n) and (N, n, n)."""
+    return np.einsum("nij,njk,nlk->nil", J, Q, J, optimize=True)
+
+
+def surface_angles(
+    depth: np.ndarray, uv: np.ndarray, camera: Camera, step: int = 3, max_jump: float = 0.05
+) -> np.ndarray:
+    """Angle (radians) between the local surface normal and the viewing ray at pixels ``uv``.
+
+    The normal is the cross product of the back-projected central differences of the depth image
+    (metres, 0 = invalid) ``step`` pixels around each pixel. Where a neighbour is invalid, off the
+    image, or differs by more than ``max_jump`` metres times the depth (a depth edge), the angle
+    is 0, the thesis's default.
+    """
+    uv = np.asarray(uv, dtype=float)
+    n = uv.shape[0]
+    theta = np.zeros(n)
+    if n == 0:
+        return theta
+    h, w = depth.shape
+    ui = np.rint(uv[:, 0]).astype(int)
+    vi = np.rint(uv[:, 1]).astype(int)
+    ok = (ui >= step) & (ui < w - step) & (vi >= step) & (vi < h - step)
+    ui_c, vi_c = np.where(ok, ui, step), np.where(ok, vi, step)
+
+    def point(du: int, dv: int) -> tuple[np.ndarray, np.ndarray]:
+        z = depth[vi_c + dv, ui_c + du].astype(float)
+        p = np.stack([(ui_c + du - camera.cx) * z / camera.fx, (vi_c + dv - camera.cy) * z / camera.fy, z], 1)
+        return p, z
+
+    pc, zc = point(0, 0)
+    (pr, zr), (pl, zl), (pd, zd), (pu, zu) = point(step, 0), point(-step, 0), point(0, step), point(0, -step)
+    zs = np.stack([zc, zr, zl, zd, zu], 1)
+    ok &= np.all(zs > 0, axis=1)
+    ok &= np.all(np.abs(zs[:, 1:] - zc[:, None]) < max_jump * np.maximum(zc[:, None], 1e-9), axis=1)
+    normal = np.cross(pr - pl, pd - pu)
+    norm = np.linalg.norm(normal, axis=1) * np.linalg.norm(pc, axis=1)
+    ok &= norm > 0
+    cosang = np.abs(np.einsum("ij,ij->i", normal, pc)) / np.where(ok, norm, 1.0)
+    theta[ok] = np.arccos(np.clip(cosang[ok], 0.0, 1.0))
+    return theta
