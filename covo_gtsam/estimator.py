@@ -21,7 +21,7 @@ from .errors import (
     InputError,
     InsufficientPairsError,
 )
-from .factors import WEIGHTINGS, residual_covariances, transfer_factor, whitened_system, whitening
+from .factors import WEIGHTINGS, is_positive_definite, residual_covariances, transfer_factor, whitened_system, whitening
 from .geometry import rigid_fit, rotation_angle
 
 #: Key of the relative pose in the estimator's graph.
@@ -104,9 +104,9 @@ def validate_inputs(X_k, X_k1, Q_k, Q_k1) -> tuple[np.ndarray, np.ndarray, np.nd
         asym = np.abs(Q - np.swapaxes(Q, 1, 2)).max(initial=0.0)
         if asym > 1e-9 * max(np.abs(Q).max(initial=0.0), 1e-300):
             raise InputError(f"{name} is not symmetric (max asymmetry {asym:.3g})")
-        if n and np.linalg.eigvalsh(Q).min() <= 0.0:
-            bad = int(np.argmin(np.linalg.eigvalsh(Q).min(axis=1)))
-            raise InputError(f"{name}[{bad}] is not positive definite")
+        pd = is_positive_definite(Q)
+        if not np.all(pd):
+            raise InputError(f"{name}[{int(np.argmin(pd))}] is not positive definite")
     return X_k, X_k1, Q_k, Q_k1
 
 
@@ -135,6 +135,7 @@ def estimate_relative_pose(
     initial: gtsam.Pose3 | None = None,
     max_iterations: int = 50,
     max_reweights: int = 4,
+    reweight_tol: float = 1e-6,
 ) -> RelativePoseResult:
     """Estimate ``T_k,k1`` and its covariance from N matched point pairs.
 
@@ -146,7 +147,7 @@ def estimate_relative_pose(
         initial: initial guess of T_k,k1; a weighted closed-form rigid fit if None.
         max_iterations: Levenberg-Marquardt iterations per pass.
         max_reweights: passes of the ``consistent`` weighting, each re-evaluating the residual
-            covariances at the latest rotation until it changes by less than 1e-9 rad.
+            covariances at the latest rotation until it changes by less than ``reweight_tol`` rad.
 
     Raises:
         InputError: wrong shapes, NaN/inf, non-symmetric or non-positive-definite covariances.
@@ -185,7 +186,7 @@ def estimate_relative_pose(
         pose = solution.atPose3(POSE_KEY)
         if not np.all(np.isfinite(pose.matrix())):
             raise EstimationError("Levenberg-Marquardt returned a non-finite pose")
-        if rotation_angle(R_w.T @ pose.rotation().matrix()) < 1e-9:
+        if rotation_angle(R_w.T @ pose.rotation().matrix()) < reweight_tol:
             break
 
     e, J = whitened_system(pose.rotation().matrix(), pose.translation(), X_k, X_k1, whitening(C_b), whitening(C_f))

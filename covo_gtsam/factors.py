@@ -80,35 +80,90 @@ def residual_covariances(
         return Q_k1, Q_k
     if weighting == "consistent":
         R = np.eye(3) if R_w is None else np.asarray(R_w, dtype=float)
-        S_b = Q_k + R @ Q_k1 @ R.T
-        S_f = Q_k1 + R.T @ Q_k @ R
+        S_b = Q_k + rotate_covariances(R, Q_k1)
+        S_f = Q_k1 + rotate_covariances(R.T, Q_k)
         return 2.0 * S_b, 2.0 * S_f
     raise InputError(f"unknown weighting {weighting!r}; choose one of {WEIGHTINGS}")
 
 
+def rotate_covariances(R: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``R Q_i R^T`` for a stack of symmetric Q (N, 3, 3) and one rotation R (3, 3)."""
+    n = Q.shape[0]
+    RQ = (Q.reshape(-1, 3) @ R.T).reshape(n, 3, 3).transpose(0, 2, 1)  # (Q R^T)^T = R Q
+    return (RQ.reshape(-1, 3) @ R.T).reshape(n, 3, 3)
+
+
+def is_positive_definite(C: np.ndarray) -> np.ndarray:
+    """Mask (N,) of symmetric 3x3 matrices that are positive definite (Sylvester's criterion)."""
+    m1 = C[:, 0, 0]
+    m2 = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    return (m1 > 0) & (m2 > 0) & (np.linalg.det(C) > 0)
+
+
 def whitening(C: np.ndarray) -> np.ndarray:
-    """Matrices ``W`` (N, 3, 3) with ``W^T W = C^-1`` (inverse Cholesky factor) for SPD ``C``."""
-    try:
-        L = np.linalg.cholesky(C)
-    except np.linalg.LinAlgError as exc:
-        raise InputError("a point covariance is not positive definite") from exc
-    return np.linalg.inv(L)
+    """Matrices ``W`` (N, 3, 3) with ``W^T W = C^-1`` for SPD ``C`` (N, 3, 3).
+
+    ``W = L^-1`` with ``C = L L^T`` (lower Cholesky factor), in closed form for 3x3 blocks.
+    """
+    C = np.asarray(C, dtype=float)
+    l00 = np.sqrt(C[:, 0, 0])
+    l10 = C[:, 1, 0] / l00
+    l20 = C[:, 2, 0] / l00
+    d1 = C[:, 1, 1] - l10 * l10
+    l11 = np.sqrt(d1)
+    l21 = (C[:, 2, 1] - l20 * l10) / l11
+    d2 = C[:, 2, 2] - l20 * l20 - l21 * l21
+    l22 = np.sqrt(d2)
+    if not (np.all(C[:, 0, 0] > 0) and np.all(d1 > 0) and np.all(d2 > 0)):
+        raise InputError("a point covariance is not positive definite")
+    W = np.zeros_like(C)
+    W[:, 0, 0] = 1.0 / l00
+    W[:, 1, 1] = 1.0 / l11
+    W[:, 2, 2] = 1.0 / l22
+    W[:, 1, 0] = -l10 / (l00 * l11)
+    W[:, 2, 1] = -l21 / (l11 * l22)
+    W[:, 2, 0] = (l10 * l21 - l11 * l20) / (l00 * l11 * l22)
+    return W
 
 
 def whitened_system(
     R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.ndarray, W_b: np.ndarray, W_f: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Whitened stacked error (6N,) and Jacobian (6N, 6), pair-major ``[W_b r_b, W_f r_f]``."""
-    r_b, r_f = transfer_residuals(R, t, X_k, X_k1)
-    J_b, J_f = transfer_jacobians(R, t, X_k, X_k1)
+    """Whitened stacked error (6N,) and Jacobian (6N, 6), pair-major ``[W_b r_b, W_f r_f]``.
+
+    Same values as whitening :func:`transfer_residuals` and :func:`transfer_jacobians`, written
+    for speed: ``R [X]x = [R X]x R``, and row i of ``W [P]x`` is ``(w_i x P)^T``.
+    """
     n = X_k.shape[0]
+    P = X_k1 @ R.T
+    Y = (X_k - t) @ R
+    r_b = X_k - P - t
+    r_f = X_k1 - Y
     e = np.empty((n, 6))
     e[:, :3] = np.einsum("nij,nj->ni", W_b, r_b)
     e[:, 3:] = np.einsum("nij,nj->ni", W_f, r_f)
+    Jb = np.empty((n, 3, 6))
+    _cross_rows(W_b, P, Jb[:, :, :3])
+    Jb[:, :, 3:] = -W_b
     J = np.empty((n, 6, 6))
-    J[:, :3] = W_b @ J_b
-    J[:, 3:] = W_f @ J_f
+    J[:, :3] = _right_blockdiag(Jb, R)
+    _cross_rows(W_f, -Y, J[:, 3:, :3])
+    J[:, 3:, 3:] = W_f
     return e.reshape(-1), J.reshape(-1, 6)
+
+
+def _cross_rows(W: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
+    """``out[n, i] = W[n, i] x P[n]`` for W (N, 3, 3), P (N, 3), written into ``out`` (N, 3, 3)."""
+    px, py, pz = P[:, None, 0], P[:, None, 1], P[:, None, 2]
+    wx, wy, wz = W[:, :, 0], W[:, :, 1], W[:, :, 2]
+    out[:, :, 0] = wy * pz - wz * py
+    out[:, :, 1] = wz * px - wx * pz
+    out[:, :, 2] = wx * py - wy * px
+
+
+def _right_blockdiag(M: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``M @ blockdiag(R, R)`` for M (N, 3, 6)."""
+    return (M.reshape(-1, 3) @ R).reshape(M.shape)
 
 
 def between_jacobian(T: gtsam.Pose3) -> np.ndarray:
