@@ -1,0 +1,80 @@
+"""Metrics of an odometry run against the sequence's ground truth (a dict ready for JSON)."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from .geometry import invert_pose
+from .metrics import ate, chi2_quantile, relative_pose_nees, rpe
+from .odometry import OdometryStep
+
+#: RPE intervals (frames) reported by ``covo run``.
+RPE_DELTAS = (1, 30)
+
+
+def consistency_metrics(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> dict:
+    """ANEES of rotation and translation (3 dof each) and the share of NEES above chi2(3) 97.5 %."""
+    nees_rot, nees_tr = relative_pose_nees(T_est, T_true, covs)
+    upper = chi2_quantile(0.975, 3)
+    return {
+        "anees_translation": float(np.mean(nees_tr)),
+        "anees_rotation": float(np.mean(nees_rot)),
+        "share_nees_translation_above_chi2_975": float(np.mean(nees_tr > upper)),
+        "share_nees_rotation_above_chi2_975": float(np.mean(nees_rot > upper)),
+        "chi2_3_975": float(upper),
+        "nees_pairs": int(len(nees_tr)),
+    }
+
+
+def relative_ground_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]):
+    """Estimated and true T_ref,cur (K, 4, 4) and covariances (K, 6, 6) of the tracked pairs with ground truth."""
+    est, true, covs = [], [], []
+    for s in steps:
+        if s.status != "tracked":
+            continue
+        g_ref, g_cur = stamp_to_gt.get(s.ref_timestamp), stamp_to_gt.get(s.timestamp)
+        if g_ref is None or g_cur is None:
+            continue
+        est.append(s.relative.matrix())
+        true.append(invert_pose(g_ref) @ g_cur)
+        covs.append(s.covariance)
+    return np.array(est).reshape(-1, 4, 4), np.array(true).reshape(-1, 4, 4), np.array(covs).reshape(-1, 6, 6)
+
+
+def ground_truth_lookup(seq) -> dict[float, np.ndarray]:
+    """Map frame timestamp -> ground-truth pose T_world,cam for frames with valid ground truth."""
+    if getattr(seq, "groundtruth", None) is None:
+        return {}
+    return {float(t): g for t, g, ok in zip(seq.timestamps, seq.groundtruth, seq.gt_valid) if ok}
+
+
+def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
+    """Frames, lost frames, speed and, with ground truth, RPE/ATE/ANEES of an odometry run."""
+    lost = [s for s in steps if not s.tracked]
+    metrics: dict = {
+        "sequence": getattr(seq, "name", ""),
+        "frames": len(steps),
+        "tracked_frames": len(steps) - len(lost),
+        "lost_frames": len(lost),
+        "lost": [{"timestamp": s.timestamp, "reason": s.reason} for s in lost],
+        "elapsed_s": float(elapsed_s),
+        "frames_per_second": float(len(steps) / elapsed_s) if elapsed_s > 0 else None,
+        "mean_pairs": float(np.mean([s.num_pairs for s in steps if s.status == "tracked"] or [0])),
+    }
+    gt = ground_truth_lookup(seq)
+    if not gt:
+        return metrics
+    tracked = [s for s in steps if s.tracked and s.timestamp in gt]
+    est = np.array([s.pose.matrix() for s in tracked]).reshape(-1, 4, 4)
+    ref = np.array([gt[s.timestamp] for s in tracked]).reshape(-1, 4, 4)
+    for delta in RPE_DELTAS:
+        if len(tracked) > delta:
+            metrics[f"rpe_{delta}"] = rpe(ref, est, delta)
+    if len(tracked) >= 3:
+        metrics["ate"] = ate(ref, est)
+    T_est, T_true, covs = relative_ground_truth(steps, gt)
+    if len(T_est):
+        metrics.update(consistency_metrics(T_est, T_true, covs))
+    return metrics

@@ -1,0 +1,196 @@
+"""Streaming RGB-D visual odometry: one entry point, :meth:`VisualOdometry.register_frame`.
+
+Data flow per frame: colour + depth -> ORB features and per-keypoint 3D points with covariances
+(:mod:`covo_gtsam.frontend`) -> matched point pairs with the previous tracked frame -> relative
+pose ``T_ref,cur`` and its covariance (:mod:`covo_gtsam.estimator`) -> absolute pose
+``T_world,cur`` (world = first camera frame) with a first-order composed covariance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from .camera import Camera
+from .covariance import compose_covariance
+from .errors import ConfigError, CovoError, EstimationError, InputError
+from .estimator import RelativePoseResult, estimate_relative_pose
+from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
+from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """Settings of :class:`VisualOdometry` (front end, noise model, estimator)."""
+
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    pixel_sigma: float = 8.0
+    use_surface_angle: bool = True
+    weighting: str = "consistent"
+    scale: float = 1.0
+    depth_scale: float = 5000.0
+
+    def noise_model(self) -> PointNoiseModel:
+        return PointNoiseModel(pixel=PixelNoise(self.pixel_sigma, self.pixel_sigma), depth=KinectAxialNoise())
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "OdometryConfig":
+        """Build from a plain mapping, e.g. a parsed TOML/JSON file; a ``frontend`` table sets the front end."""
+        d = dict(d)
+        fe = d.pop("frontend", {}) or {}
+        names = {f.name for f in dataclasses.fields(cls)} - {"frontend"}
+        fe_names = {f.name for f in dataclasses.fields(FrontendConfig)}
+        unknown = sorted(set(d) - names) + sorted(f"frontend.{k}" for k in set(fe) - fe_names)
+        if unknown:
+            raise ConfigError(f"unknown configuration keys: {', '.join(unknown)}")
+        try:
+            return cls(frontend=FrontendConfig(**fe), **d)
+        except TypeError as exc:
+            raise ConfigError(f"invalid configuration: {exc}") from exc
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class OdometryStep:
+    """Outcome of one :meth:`VisualOdometry.register_frame` call.
+
+    ``status`` is ``"first"`` (the first tracked frame, identity pose), ``"tracked"`` or
+    ``"lost"``. For tracked frames ``relative`` is T_ref,cur (points of this frame into the
+    reference frame, the previous tracked one) with ``covariance`` in GTSAM's tangent
+    ``[rx ry rz tx ty tz]`` (right perturbation); ``pose`` is T_world,cur with
+    ``pose_covariance`` composed to first order along the trajectory.
+    """
+
+    timestamp: float
+    status: str
+    reason: str = ""
+    ref_timestamp: float | None = None
+    relative: gtsam.Pose3 | None = None
+    covariance: np.ndarray | None = None
+    pose: gtsam.Pose3 | None = None
+    pose_covariance: np.ndarray | None = None
+    num_matches: int = 0
+    num_pairs: int = 0
+    result: RelativePoseResult | None = field(default=None, repr=False)
+
+    @property
+    def tracked(self) -> bool:
+        return self.status in ("first", "tracked")
+
+
+class VisualOdometry:
+    """Frame-to-frame RGB-D odometry with per-step covariance.
+
+    >>> vo = VisualOdometry(Camera.preset("fr1"))
+    >>> step = vo.register_frame(colour, depth_raw, timestamp)   # doctest: +SKIP
+    """
+
+    def __init__(self, camera: Camera, config: OdometryConfig | None = None) -> None:
+        self.camera = camera
+        self.config = config or OdometryConfig()
+        self._orb = make_orb(self.config.frontend)
+        self._noise = self.config.noise_model()
+        self._ref: FrameData | None = None
+        self._ref_step: OdometryStep | None = None
+        self.steps: list[OdometryStep] = []
+
+    # -- front end -------------------------------------------------------------------------
+    def prepare(self, image: np.ndarray, depth: np.ndarray) -> FrameData:
+        """Features, 3D points and covariances of one frame (thread-safe; no GTSAM calls).
+
+        ``image``: grey (H, W) or BGR (H, W, 3) uint8. ``depth``: metres (float) or raw
+        integer values divided by ``config.depth_scale``.
+        """
+        depth = np.asarray(depth)
+        image = np.asarray(image)
+        if depth.shape[:2] != image.shape[:2] or depth.ndim != 2:
+            raise InputError(f"depth image shape {depth.shape} does not match the colour image {image.shape[:2]}")
+        if image.shape[:2] != (self.camera.height, self.camera.width):
+            raise InputError(
+                f"image size {image.shape[1]}x{image.shape[0]} differs from the camera's "
+                f"{self.camera.width}x{self.camera.height}")
+        if np.issubdtype(depth.dtype, np.integer):
+            depth = depth.astype(np.float32) / self.config.depth_scale
+        return prepare_frame(
+            to_grey(image), depth, self.camera, self._orb, self._noise, self.config.frontend,
+            use_surface_angle=self.config.use_surface_angle,
+        )
+
+    # -- the entry point ---------------------------------------------------------------------
+    def register_frame(self, image: np.ndarray | FrameData, depth: np.ndarray | None = None, timestamp: float = 0.0) -> OdometryStep:
+        """Add a frame; return its relative pose to the previous tracked frame, or a lost status.
+
+        ``image`` may also be a :class:`FrameData` from :meth:`prepare` (then ``depth`` is
+        ignored), which lets a caller compute features on another thread. A frame that cannot be
+        tracked is reported lost and the next frame is matched to the last tracked one.
+        """
+        timestamp = float(timestamp)
+        try:
+            frame = image if isinstance(image, FrameData) else self.prepare(image, depth)
+        except CovoError as exc:
+            return self._record(OdometryStep(timestamp, "lost", reason=str(exc)))
+        if self._ref is None:
+            return self._start(frame, timestamp)
+        ref_step = self._ref_step
+        pairs = associate_frames(self._ref, frame, self.config.frontend)
+        step = OdometryStep(timestamp, "lost", ref_timestamp=ref_step.timestamp,
+                            num_matches=pairs.num_matches, num_pairs=pairs.num_inliers)
+        min_pairs = self.config.frontend.min_pairs
+        if pairs.num_inliers < min_pairs:
+            step.reason = f"only {pairs.num_inliers} point pairs (need {min_pairs})"
+            return self._record(step)
+        try:
+            res = estimate_relative_pose(
+                pairs.X_ref, pairs.X_cur, pairs.Q_ref, pairs.Q_cur,
+                weighting=self.config.weighting, scale=self.config.scale,
+            )
+        except EstimationError as exc:
+            step.reason = str(exc)
+            return self._record(step)
+        step.status = "tracked"
+        step.relative = res.pose
+        step.covariance = res.covariance
+        step.result = res
+        step.pose = ref_step.pose.compose(res.pose)
+        step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, res.pose, res.covariance)
+        self._ref, self._ref_step = frame, step
+        return self._record(step)
+
+    def _start(self, frame: FrameData, timestamp: float) -> OdometryStep:
+        if frame.num_valid < self.config.frontend.min_pairs:
+            return self._record(OdometryStep(
+                timestamp, "lost", reason=f"only {frame.num_valid} features with valid depth"))
+        step = OdometryStep(timestamp, "first", pose=gtsam.Pose3(), pose_covariance=np.zeros((6, 6)))
+        self._ref, self._ref_step = frame, step
+        return self._record(step)
+
+    def mark_lost(self, timestamp: float, reason: str) -> OdometryStep:
+        """Report a frame that could not be used at all (e.g. an unreadable file)."""
+        return self._record(OdometryStep(float(timestamp), "lost", reason=reason))
+
+    def _record(self, step: OdometryStep) -> OdometryStep:
+        # The history keeps poses only, so memory stays small on long runs.
+        self.steps.append(dataclasses.replace(step, result=None))
+        return step
+
+    # -- results -------------------------------------------------------------------------------
+    @property
+    def tracked_steps(self) -> list[OdometryStep]:
+        return [s for s in self.steps if s.tracked]
+
+    @property
+    def lost_steps(self) -> list[OdometryStep]:
+        return [s for s in self.steps if not s.tracked]
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Timestamps (K,) and poses T_world,cur (K, 4, 4) of the tracked frames."""
+        tracked = self.tracked_steps
+        stamps = np.array([s.timestamp for s in tracked])
+        poses = np.array([s.pose.matrix() for s in tracked]).reshape(-1, 4, 4)
+        return stamps, poses

@@ -1,0 +1,168 @@
+"""Figures for runs and simulations (matplotlib, imported lazily; the ``plots`` extra)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .geometry import invert_pose
+from .metrics import chi2_pdf, chi2_quantile, relative_pose_errors, relative_pose_nees
+
+
+def _plt():
+    try:
+        import matplotlib
+    except ImportError:  # pragma: no cover - depends on the install
+        return None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def nees_histogram(ax, nees: np.ndarray, title: str, dof: int = 3) -> None:
+    """Histogram of NEES values with the chi2(dof) density and its 2.5 %/97.5 % quantiles."""
+    nees = np.asarray(nees)
+    upper = max(chi2_quantile(0.995, dof) * 1.5, float(np.percentile(nees, 95)) if nees.size else 0.0)
+    bins = np.linspace(0, upper, 40)
+    ax.hist(np.clip(nees, 0, upper), bins=bins, density=True, alpha=0.6, label=f"NEES (mean {np.mean(nees):.2f})")
+    x = np.linspace(1e-3, upper, 300)
+    ax.plot(x, chi2_pdf(x, dof), "k-", lw=1.5, label=f"$\\chi^2({dof})$ density")
+    for p in (0.025, 0.975):
+        ax.axvline(chi2_quantile(p, dof), color="r", ls="--", lw=1)
+    ax.set_title(title)
+    ax.set_xlabel("NEES (values above the range are put in the last bin)")
+    ax.set_ylabel("density")
+    ax.legend(fontsize=8)
+
+
+def _ellipse_xy(ax, center: np.ndarray, cov2: np.ndarray, nsigma: float = 3.0, **kw) -> None:
+    vals, vecs = np.linalg.eigh(0.5 * (cov2 + cov2.T))
+    vals = np.maximum(vals, 0.0)
+    a = np.linspace(0, 2 * np.pi, 60)
+    pts = (vecs @ (nsigma * np.sqrt(vals)[:, None] * np.stack([np.cos(a), np.sin(a)]))).T + center
+    ax.plot(pts[:, 0], pts[:, 1], **kw)
+
+
+def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
+    """Trajectory with 3-sigma ellipses, NEES histograms and RPE box plots of a run."""
+    plt = _plt()
+    if plt is None:
+        return []
+    from .evaluation import ground_truth_lookup, relative_ground_truth
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    gt = ground_truth_lookup(seq)
+    tracked = [s for s in steps if s.tracked]
+    if not tracked:
+        return written
+    P = np.array([s.pose.matrix() for s in tracked])
+    covs = np.array([s.pose_covariance for s in tracked])
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5))
+    gt_first = next((gt[s.timestamp] for s in tracked if s.timestamp in gt), None)
+    for ax, (i, j, names) in zip(axes, [(0, 2, "x / z"), (0, 1, "x / y")]):
+        ax.plot(P[:, i, 3], P[:, j, 3], "b-", lw=1.2, label="covo")
+        if gt_first is not None:
+            G = np.array([invert_pose(gt_first) @ gt[s.timestamp] for s in tracked if s.timestamp in gt])
+            ax.plot(G[:, i, 3], G[:, j, 3], "k--", lw=1.0, label="ground truth")
+        every = max(1, len(tracked) // 15)
+        for k in range(0, len(tracked), every):
+            R = P[k, :3, :3]
+            cov_w = R @ covs[k][3:, 3:] @ R.T  # translation block is body-frame; rotate to world
+            _ellipse_xy(ax, P[k, [i, j], 3], cov_w[np.ix_([i, j], [i, j])], color="tab:orange", lw=0.8)
+        ax.plot([], [], color="tab:orange", lw=0.8, label="3$\\sigma$ (composed)")
+        ax.set_xlabel(f"{'xyz'[i]} [m] (first camera frame)")
+        ax.set_ylabel(f"{'xyz'[j]} [m]")
+        ax.set_title(f"trajectory, {names}")
+        ax.axis("equal")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    written.append(out_dir / "trajectory.png")
+    fig.savefig(written[-1], dpi=110)
+    plt.close(fig)
+
+    T_est, T_true, rel_covs = relative_ground_truth(steps, gt)
+    if len(T_est):
+        nees_rot, nees_tr = relative_pose_nees(T_est, T_true, rel_covs)
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+        nees_histogram(axes[0], nees_tr, "translation NEES per frame pair")
+        nees_histogram(axes[1], nees_rot, "rotation NEES per frame pair")
+        fig.tight_layout()
+        written.append(out_dir / "nees.png")
+        fig.savefig(written[-1], dpi=110)
+        plt.close(fig)
+
+        gt_poses = np.array([gt[s.timestamp] for s in tracked if s.timestamp in gt])
+        est_poses = np.array([s.pose.matrix() for s in tracked if s.timestamp in gt])
+        data_t, data_r, labels = [], [], []
+        for delta in (1, 30):
+            if len(gt_poses) > delta:
+                tr, rot = relative_pose_errors(gt_poses, est_poses, delta)
+                data_t.append(tr * 100)
+                data_r.append(np.rad2deg(rot))
+                labels.append(f"{delta} frame{'s' if delta > 1 else ''}")
+        if data_t:
+            fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+            axes[0].boxplot(data_t, tick_labels=labels)
+            axes[0].set_ylabel("translational RPE [cm]")
+            axes[1].boxplot(data_r, tick_labels=labels)
+            axes[1].set_ylabel("rotational RPE [deg]")
+            for ax in axes:
+                ax.grid(True, alpha=0.3)
+            fig.suptitle(f"relative pose error, {metrics.get('sequence', '')}")
+            fig.tight_layout()
+            written.append(out_dir / "rpe.png")
+            fig.savefig(written[-1], dpi=110)
+            plt.close(fig)
+    return written
+
+
+def plot_simulation(result, out_dir: Path) -> list[Path]:
+    """NEES histograms and per-axis errors against their 1/3-sigma bounds (thesis Figs 5.2.4-5.2.7)."""
+    plt = _plt()
+    if plt is None:
+        return []
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    nees_histogram(axes[0], result.nees_translation, f"translation NEES (ANEES {result.anees_translation:.2f})")
+    nees_histogram(axes[1], result.nees_rotation, f"rotation NEES (ANEES {result.anees_rotation:.2f})")
+    fig.suptitle(f"simulation, {result.config.weighting} weighting, scale {result.config.scale:g}, "
+                 f"{result.config.pixel_sigma:g} px, {len(result.errors)} runs")
+    fig.tight_layout()
+    written.append(out_dir / "nees.png")
+    fig.savefig(written[-1], dpi=110)
+    plt.close(fig)
+
+    sig = np.sqrt(np.einsum("nii->ni", result.covariances))
+    names = ["rx [deg]", "ry [deg]", "rz [deg]", "tx [cm]", "ty [cm]", "tz [cm]"]
+    unit = np.array([np.rad2deg(1)] * 3 + [100.0] * 3)
+    fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
+    runs = np.arange(len(result.errors))
+    for k, ax in enumerate(axes.ravel()):
+        e, s = result.errors[:, k] * unit[k], sig[:, k] * unit[k]
+        ax.plot(runs, e, ".", ms=2, color="tab:blue", label="error")
+        ax.plot(runs, s, "-", color="tab:green", lw=0.6, label="$\\pm1\\sigma$")
+        ax.plot(runs, -s, "-", color="tab:green", lw=0.6)
+        ax.plot(runs, 3 * s, "-", color="tab:red", lw=0.6, label="$\\pm3\\sigma$")
+        ax.plot(runs, -3 * s, "-", color="tab:red", lw=0.6)
+        inside1 = np.mean(np.abs(e) <= s) * 100
+        inside3 = np.mean(np.abs(e) <= 3 * s) * 100
+        ax.set_title(f"{names[k]}: {inside1:.0f}% in 1$\\sigma$, {inside3:.1f}% in 3$\\sigma$", fontsize=9)
+        ax.grid(True, alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    for ax in axes[1]:
+        ax.set_xlabel("run")
+    fig.suptitle("errors of T_0,1 (GTSAM tangent, right perturbation) against predicted bounds")
+    fig.tight_layout()
+    written.append(out_dir / "errors_bounds.png")
+    fig.savefig(written[-1], dpi=110)
+    plt.close(fig)
+    return written
