@@ -149,6 +149,7 @@ class VisualOdometry:
             res = estimate_relative_pose(
                 pairs.X_ref, pairs.X_cur, pairs.Q_ref, pairs.Q_cur,
                 weighting=self.config.weighting, scale=self.config.scale,
+                initial=None if pairs.T_init is None else gtsam.Pose3(pairs.T_init),
             )
         except EstimationError as exc:
             step.reason = str(exc)
