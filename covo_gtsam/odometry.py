@@ -25,14 +25,37 @@ from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 
 @dataclass(frozen=True)
 class OdometryConfig:
-    """Settings of :class:`VisualOdometry` (front end, noise model, estimator)."""
+    """Settings of :class:`VisualOdometry` (front end, noise model, estimator).
+
+    ``pixel_sigma`` (pixels) is the conic-ray noise of the keypoints. ``frame_sigma_rot_deg`` and
+    ``frame_sigma_trans_m`` are per-axis standard deviations of an error common to all points
+    of a frame pair (depth-image and synchronisation errors of the Kinect v1 that the per-point
+    model cannot see); they are added to each relative covariance. Defaults are calibrated once
+    for the sensor on the first half of the shared fr1_rpy frames, see docs/consistency.md.
+
+    With ``keyframes`` frames are matched to a keyframe until the point pairs drop
+    below ``keyframe_ratio`` times the count of the first frame matched to it (at least twice
+    ``frontend.min_pairs``); then the last tracked frame becomes the keyframe. Each emitted
+    relative pose and covariance is that of its own pair (keyframe, frame). Without (default,
+    more accurate on the shared data), every frame is matched to the previous tracked one.
+    """
 
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
-    pixel_sigma: float = 8.0
+    pixel_sigma: float = 2.0
     use_surface_angle: bool = True
     weighting: str = "consistent"
     scale: float = 1.0
     depth_scale: float = 5000.0
+    keyframes: bool = False
+    keyframe_ratio: float = 0.5
+    frame_sigma_rot_deg: float = 0.30
+    frame_sigma_trans_m: float = 0.0041
+
+    def frame_noise(self) -> np.ndarray:
+        """6x6 frame-level covariance added to every relative pose (tangent [omega, v])."""
+        r = np.deg2rad(self.frame_sigma_rot_deg) ** 2
+        t = self.frame_sigma_trans_m**2
+        return np.diag([r, r, r, t, t, t])
 
     def noise_model(self) -> PointNoiseModel:
         return PointNoiseModel(pixel=PixelNoise(self.pixel_sigma, self.pixel_sigma), depth=KinectAxialNoise())
@@ -85,7 +108,7 @@ class OdometryStep:
 
 
 class VisualOdometry:
-    """Frame-to-frame RGB-D odometry with per-step covariance.
+    """Keyframe-based (or frame-to-frame) RGB-D odometry with per-step covariance.
 
     >>> vo = VisualOdometry(Camera.preset("fr1"))
     >>> step = vo.register_frame(colour, depth_raw, timestamp)   # doctest: +SKIP
@@ -96,8 +119,11 @@ class VisualOdometry:
         self.config = config or OdometryConfig()
         self._orb = make_orb(self.config.frontend)
         self._noise = self.config.noise_model()
-        self._ref: FrameData | None = None
+        self._frame_noise = self.config.frame_noise()
+        self._ref: FrameData | None = None  # the reference (key)frame
         self._ref_step: OdometryStep | None = None
+        self._last: tuple[FrameData, OdometryStep] | None = None  # the last tracked frame
+        self._keyframe_min_pairs = 0
         self.steps: list[OdometryStep] = []
 
     # -- front end -------------------------------------------------------------------------
@@ -124,7 +150,10 @@ class VisualOdometry:
 
     # -- the entry point ---------------------------------------------------------------------
     def register_frame(self, image: np.ndarray | FrameData, depth: np.ndarray | None = None, timestamp: float = 0.0) -> OdometryStep:
-        """Add a frame; return its relative pose to the previous tracked frame, or a lost status.
+        """Add a frame; return its relative pose to the reference frame, or a lost status.
+
+        The reference is the current keyframe (``config.keyframes``) or the previous tracked
+        frame; ``step.ref_timestamp`` names it.
 
         ``image`` may also be a :class:`FrameData` from :meth:`prepare` (then ``depth`` is
         ignored), which lets a caller compute features on another thread. A frame that cannot be
@@ -137,14 +166,35 @@ class VisualOdometry:
             return self._record(OdometryStep(timestamp, "lost", reason=str(exc)))
         if self._ref is None:
             return self._start(frame, timestamp)
-        ref_step = self._ref_step
-        pairs = associate_frames(self._ref, frame, self.config.frontend)
+        step = self._track(self._ref, self._ref_step, frame, timestamp)
+        last = self._last
+        if self.config.keyframes and last is not None and last[1] is not self._ref_step and (
+            not step.tracked or step.num_pairs < self._keyframe_min_pairs
+        ):
+            # Too little overlap with the keyframe: the last tracked frame becomes the keyframe.
+            self._set_keyframe(*last)
+            retry = self._track(self._ref, self._ref_step, frame, timestamp)
+            if retry.tracked or not step.tracked:
+                step = retry
+        if step.tracked:
+            self._last = (frame, step)
+            if not self.config.keyframes:
+                self._set_keyframe(frame, step)
+        return self._record(step)
+
+    def _set_keyframe(self, frame: FrameData, step: OdometryStep) -> None:
+        self._ref, self._ref_step = frame, step
+        self._keyframe_min_pairs = 0  # set from the first pair matched to this keyframe
+
+    def _track(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, timestamp: float) -> OdometryStep:
+        """Relative pose of ``frame`` to ``ref`` (a lost step if it cannot be estimated)."""
+        pairs = associate_frames(ref, frame, self.config.frontend)
         step = OdometryStep(timestamp, "lost", ref_timestamp=ref_step.timestamp,
                             num_matches=pairs.num_matches, num_pairs=pairs.num_inliers)
         min_pairs = self.config.frontend.min_pairs
         if pairs.num_inliers < min_pairs:
             step.reason = f"only {pairs.num_inliers} point pairs (need {min_pairs})"
-            return self._record(step)
+            return step
         try:
             res = estimate_relative_pose(
                 pairs.X_ref, pairs.X_cur, pairs.Q_ref, pairs.Q_cur,
@@ -153,22 +203,24 @@ class VisualOdometry:
             )
         except EstimationError as exc:
             step.reason = str(exc)
-            return self._record(step)
+            return step
         step.status = "tracked"
         step.relative = res.pose
-        step.covariance = res.covariance
+        step.covariance = res.covariance + self._frame_noise
         step.result = res
         step.pose = ref_step.pose.compose(res.pose)
-        step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, res.pose, res.covariance)
-        self._ref, self._ref_step = frame, step
-        return self._record(step)
+        step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, res.pose, step.covariance)
+        if self._keyframe_min_pairs == 0:
+            self._keyframe_min_pairs = max(2 * min_pairs, int(self.config.keyframe_ratio * pairs.num_inliers))
+        return step
 
     def _start(self, frame: FrameData, timestamp: float) -> OdometryStep:
         if frame.num_valid < self.config.frontend.min_pairs:
             return self._record(OdometryStep(
                 timestamp, "lost", reason=f"only {frame.num_valid} features with valid depth"))
         step = OdometryStep(timestamp, "first", pose=gtsam.Pose3(), pose_covariance=np.zeros((6, 6)))
-        self._ref, self._ref_step = frame, step
+        self._set_keyframe(frame, step)
+        self._last = (frame, step)
         return self._record(step)
 
     def mark_lost(self, timestamp: float, reason: str) -> OdometryStep:
