@@ -1,0 +1,54 @@
+"""Shared fixtures. Real-data tests use the TUM sequences in ``../shared/data`` (or ``$COVO_DATA_DIR``).
+
+They skip with a reason when the data is absent, except under CI (``CI`` set), where missing data is
+an error: CI always has it.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+SAMPLE_DIR = REPO / "data" / "rgbd_dataset_freiburg1_rpy_head40"
+
+
+def _data_root() -> Path:
+    return Path(os.environ.get("COVO_DATA_DIR", REPO.parent / "shared" / "data"))
+
+
+def _sequence(name: str) -> Path:
+    path = _data_root() / "tum" / name
+    if not (path / "rgb.txt").is_file():
+        msg = f"TUM sequence {name} not found under {_data_root()} (set COVO_DATA_DIR)"
+        if os.environ.get("CI"):
+            pytest.fail(msg + "; CI must have the shared data")
+        pytest.skip(msg)
+    return path
+
+
+@pytest.fixture
+def shared_data_dir() -> Path:
+    root = _data_root()
+    if not root.is_dir():
+        if os.environ.get("CI"):
+            pytest.fail(f"shared data folder {root} not found; CI must have it")
+        pytest.skip(f"shared data folder {root} not found (set COVO_DATA_DIR)")
+    return root
+
+
+@pytest.fixture
+def fr1_rpy_dir() -> Path:
+    return _sequence("rgbd_dataset_freiburg1_rpy_head240")
+
+
+@pytest.fixture
+def fr1_desk_dir() -> Path:
+    return _sequence("rgbd_dataset_freiburg1_desk_9frames")
+
+
+@pytest.fixture
+def sample_dir() -> Path:
+    return SAMPLE_DIR
