@@ -1,0 +1,81 @@
+"""End to end: `covo run` outputs, their conventions, and the metrics on the shared sequences."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from covo_gtsam.cli import main
+from covo_gtsam.datasets.tum import TumSequence
+from covo_gtsam.geometry import invert_pose
+from covo_gtsam.io import load_relative_poses, load_tum_trajectory
+from covo_gtsam.metrics import rpe
+
+
+def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(sample_dir), "--out", str(out), "--quiet"]) == 0
+    assert "40 frames" in capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames"] == 40 and m["lost_frames"] == 0 and m["frames_per_second"] > 0
+    for key in ("rpe_1", "rpe_30", "ate", "anees_translation", "anees_rotation"):
+        assert key in m
+    stamps, traj = load_tum_trajectory(out / "trajectory.txt")
+    t_ref, t_cur, rel, covs = load_relative_poses(out / "relative.txt")
+    assert len(stamps) == 40 and len(rel) == 39
+    np.testing.assert_allclose(traj[0], np.eye(4), atol=1e-9)
+    # relative poses T_ref,cur compose to the trajectory T_world,cur
+    index = {round(t, 6): i for i, t in enumerate(stamps)}
+    for a, b, T in zip(t_ref, t_cur, rel):
+        np.testing.assert_allclose(traj[index[round(a, 6)]] @ T, traj[index[round(b, 6)]], atol=1e-6)
+    assert np.all(np.linalg.eigvalsh(covs) > 0)
+    # evo reads the trajectory as it is and agrees on the RPE
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    est = file_interface.read_tum_trajectory_file(str(out / "trajectory.txt"))
+    seq = TumSequence(sample_dir)
+    gt = seq.groundtruth
+    from evo.core.trajectory import PoseTrajectory3D
+
+    ref = PoseTrajectory3D(poses_se3=list(gt), timestamps=seq.timestamps)
+    ref, est = sync.associate_trajectories(ref, est, max_diff=1e-4)
+    r = metrics.RPE(metrics.PoseRelation.translation_part, 1, metrics.Unit.frames, all_pairs=True)
+    r.process_data((ref, est))
+    assert r.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(m["rpe_1"]["trans_rmse"], rel=1e-5)
+    assert {p.name for p in (out / "plots").iterdir()} >= {"trajectory.png", "nees.png", "rpe.png"}
+
+
+def test_relative_file_round_trip_through_metrics(sample_dir, tmp_path):
+    out = tmp_path / "o"
+    assert main(["run", str(sample_dir), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    t_ref, t_cur, rel, _ = load_relative_poses(out / "relative.txt")
+    P = [np.eye(4)]
+    for T in rel:
+        P.append(P[-1] @ T)
+    _, traj = load_tum_trajectory(out / "trajectory.txt")
+    seq = TumSequence(sample_dir)
+    m = json.loads((out / "metrics.json").read_text())
+    assert rpe(seq.groundtruth, np.array(P), 1)["trans_rmse"] == pytest.approx(m["rpe_1"]["trans_rmse"], rel=1e-6)
+
+
+@pytest.mark.slow
+def test_shared_rpy_sequence_accuracy_and_consistency(fr1_rpy_dir, tmp_path):
+    out = tmp_path / "rpy"
+    assert main(["run", str(fr1_rpy_dir), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["lost_frames"] == 0
+    assert m["rpe_30"]["trans_rmse"] < 0.06
+    assert 1.0 <= m["anees_translation"] <= 3.5 and 1.0 <= m["anees_rotation"] <= 3.5
+    assert m["share_nees_translation_above_chi2_975"] <= 0.10
+    assert m["share_nees_rotation_above_chi2_975"] <= 0.10
+
+
+def test_shared_desk_frames_not_overconfident(fr1_desk_dir, tmp_path):
+    out = tmp_path / "desk"
+    assert main(["run", str(fr1_desk_dir), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["lost_frames"] == 0
+    assert m["anees_translation"] <= 3.5 and m["anees_rotation"] <= 3.5
