@@ -135,7 +135,7 @@ def estimate_relative_pose(
     initial: gtsam.Pose3 | None = None,
     max_iterations: int = 50,
     max_reweights: int = 4,
-    reweight_tol: float = 1e-6,
+    reweight_tol: float = 2e-3,
 ) -> RelativePoseResult:
     """Estimate ``T_k,k1`` and its covariance from N matched point pairs.
 

@@ -137,11 +137,7 @@ def whitened_system(
     n = X_k.shape[0]
     P = X_k1 @ R.T
     Y = (X_k - t) @ R
-    r_b = X_k - P - t
-    r_f = X_k1 - Y
-    e = np.empty((n, 6))
-    e[:, :3] = np.einsum("nij,nj->ni", W_b, r_b)
-    e[:, 3:] = np.einsum("nij,nj->ni", W_f, r_f)
+    e = _whitened_error(X_k - P - t, X_k1 - Y, W_b, W_f)
     Jb = np.empty((n, 3, 6))
     _cross_rows(W_b, P, Jb[:, :, :3])
     Jb[:, :, 3:] = -W_b
@@ -149,7 +145,22 @@ def whitened_system(
     J[:, :3] = _right_blockdiag(Jb, R)
     _cross_rows(W_f, -Y, J[:, 3:, :3])
     J[:, 3:, 3:] = W_f
-    return e.reshape(-1), J.reshape(-1, 6)
+    return e, J.reshape(-1, 6)
+
+
+def whitened_error(
+    R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.ndarray, W_b: np.ndarray, W_f: np.ndarray
+) -> np.ndarray:
+    """The error part of :func:`whitened_system` alone (6N,), for evaluations without Jacobians."""
+    r_b, r_f = transfer_residuals(R, t, X_k, X_k1)
+    return _whitened_error(r_b, r_f, W_b, W_f)
+
+
+def _whitened_error(r_b: np.ndarray, r_f: np.ndarray, W_b: np.ndarray, W_f: np.ndarray) -> np.ndarray:
+    e = np.empty((r_b.shape[0], 6))
+    e[:, :3] = np.einsum("nij,nj->ni", W_b, r_b)
+    e[:, 3:] = np.einsum("nij,nj->ni", W_f, r_f)
+    return e.reshape(-1)
 
 
 def _cross_rows(W: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
@@ -185,13 +196,14 @@ def _custom_factor(
             T = values.atPose3(k0).between(values.atPose3(k1))
         else:
             T = values.atPose3(k0)
+        if H is None:
+            return whitened_error(T.rotation().matrix(), T.translation(), X_k, X_k1, W_b, W_f)
         e, J = whitened_system(T.rotation().matrix(), T.translation(), X_k, X_k1, W_b, W_f)
-        if H is not None:
-            if binary:
-                H[0] = J @ between_jacobian(T)
-                H[1] = J
-            else:
-                H[0] = J
+        if binary:
+            H[0] = J @ between_jacobian(T)
+            H[1] = J
+        else:
+            H[0] = J
         return e
 
     return gtsam.CustomFactor(noise, gtsam.KeyVector(list(keys)), error)

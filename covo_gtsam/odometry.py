@@ -9,6 +9,7 @@ pose ``T_ref,cur`` and its covariance (:mod:`covo_gtsam.estimator`) -> absolute 
 from __future__ import annotations
 
 import dataclasses
+import threading
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -117,7 +118,7 @@ class VisualOdometry:
     def __init__(self, camera: Camera, config: OdometryConfig | None = None) -> None:
         self.camera = camera
         self.config = config or OdometryConfig()
-        self._orb = make_orb(self.config.frontend)
+        self._orb_local = threading.local()  # one ORB detector per thread (see prepare)
         self._noise = self.config.noise_model()
         self._frame_noise = self.config.frame_noise()
         self._ref: FrameData | None = None  # the reference (key)frame
@@ -143,8 +144,11 @@ class VisualOdometry:
                 f"{self.camera.width}x{self.camera.height}")
         if np.issubdtype(depth.dtype, np.integer):
             depth = depth.astype(np.float32) / self.config.depth_scale
+        orb = getattr(self._orb_local, "orb", None)
+        if orb is None:
+            orb = self._orb_local.orb = make_orb(self.config.frontend)
         return prepare_frame(
-            to_grey(image), depth, self.camera, self._orb, self._noise, self.config.frontend,
+            to_grey(image), depth, self.camera, orb, self._noise, self.config.frontend,
             use_surface_angle=self.config.use_surface_angle,
         )
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +34,10 @@ from .errors import CovoError, DatasetError
 from .frontend import FrameData, load_depth, load_grey
 from .io import RelativePoseWriter, TrajectoryWriter, write_json
 from .odometry import OdometryConfig, OdometryStep, VisualOdometry
+
+
+#: Frames decoded and prepared ahead on worker threads.
+PREFETCH = 2
 
 
 @dataclass
@@ -92,14 +97,15 @@ def run_sequence(
         bar = tqdm(total=n, desc=seq.name, unit="frame", dynamic_ncols=True)
     lost_count = 0
     with TrajectoryWriter(out / "trajectory.txt") as traj_w, RelativePoseWriter(out / "relative.txt") as rel_w, \
-            ThreadPoolExecutor(max_workers=1) as pool:
+            ThreadPoolExecutor(max_workers=PREFETCH) as pool:
         def submit(i: int):
             return pool.submit(_load_frame, vo, seq.rgb_paths[i], seq.depth_paths[i], config.depth_scale)
 
-        future = submit(0) if n else None
+        pending = deque(submit(i) for i in range(min(PREFETCH, n)))
         for i in range(n):
-            frame = future.result()
-            future = submit(i + 1) if i + 1 < n else None
+            frame = pending.popleft().result()
+            if i + PREFETCH < n:
+                pending.append(submit(i + PREFETCH))
             t = float(seq.timestamps[i])
             if isinstance(frame, CovoError):
                 step = vo.mark_lost(t, str(frame))

@@ -2,8 +2,8 @@
 
 Colour and depth are associated by nearest timestamp, at most ``max_dt`` (0.02 s) apart,
 one-to-one, smallest difference first (the benchmark's ``associate.py``). Ground truth
-(T_world,cam of the colour camera at ~100 Hz) is interpolated at the colour timestamps:
-linear in translation, slerp in rotation. Images are not decoded here.
+(T_world,cam of the colour camera, ~100 Hz) is interpolated at the colour timestamps: linear in
+translation, slerp in rotation. Images are not decoded here.
 """
 
 from __future__ import annotations
@@ -15,25 +15,33 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
 from ..errors import DatasetError
 from ..geometry import make_pose, matrix_to_quat, quat_to_matrix
 from ..io import load_tum_trajectory
 
+__all__ = ["Frame", "TumSequence", "associate", "interpolate_poses", "read_file_list", "camera_name_from_path"]
+
 
 @dataclass(frozen=True)
 class Frame:
+    """One associated frame: colour timestamp (s) and absolute image paths (not decoded)."""
+
     timestamp: float
     rgb_path: str
     depth_path: str
 
 
-def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
-    """Timestamps and file names of a TUM ``rgb.txt`` / ``depth.txt``."""
+def read_file_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
+    """Timestamps (N,) and file names of a TUM ``rgb.txt`` / ``depth.txt`` (``timestamp filename`` lines).
+
+    ``#`` comment lines and blank lines are skipped; a malformed line raises :class:`DatasetError`
+    naming the file and line number.
+    """
+    p = Path(path)
     try:
-        lines = path.read_text().splitlines()
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+        lines = p.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{p}: cannot read ({getattr(exc, 'strerror', None) or exc})") from exc
     stamps, names = [], []
     for no, line in enumerate(lines, 1):
         s = line.strip()
@@ -41,99 +49,130 @@ def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
             continue
         parts = s.split()
         try:
-            if len(parts) < 2:
+            if len(parts) != 2:
                 raise ValueError
-            stamps.append(float(parts[0]))
+            t = float(parts[0])
+            if not np.isfinite(t):
+                raise ValueError
         except ValueError:
-            raise DatasetError(f"{path}:{no}: expected 'timestamp filename', got {s[:60]!r}") from None
+            raise DatasetError(f"{p}:{no}: expected 'timestamp filename', got {s[:80]!r}") from None
+        stamps.append(t)
         names.append(parts[1])
     return np.array(stamps, dtype=float), names
 
 
 def associate(rgb_stamps: np.ndarray, depth_stamps: np.ndarray, max_dt: float = 0.02) -> list[tuple[int, int]]:
-    """One-to-one pairs ``(i_rgb, i_depth)`` with ``|dt| <= max_dt``, smallest difference first, by rgb time."""
-    a = np.asarray(rgb_stamps, dtype=float)
-    b = np.asarray(depth_stamps, dtype=float)
+    """One-to-one index pairs ``(i_rgb, i_depth)`` with ``|t_rgb - t_depth| <= max_dt`` (s).
+
+    Greedy like the benchmark's ``associate.py``: candidate pairs are taken by increasing time
+    difference (ties: earlier rgb, then earlier depth stamp), skipping those whose rgb or depth
+    index is already used. The result is sorted by rgb time.
+    """
+    a = np.asarray(rgb_stamps, dtype=float).reshape(-1)
+    b = np.asarray(depth_stamps, dtype=float).reshape(-1)
     if a.size == 0 or b.size == 0:
         return []
-    order_b = np.argsort(b)
+    order_b = np.argsort(b, kind="stable")
     bs = b[order_b]
-    cand = []
-    # candidates: the depth stamps within max_dt of each rgb stamp
+    # candidates: every depth stamp within max_dt of each rgb stamp (a small window per rgb stamp)
     lo = np.searchsorted(bs, a - max_dt, side="left")
     hi = np.searchsorted(bs, a + max_dt, side="right")
-    for i in np.flatnonzero(hi > lo):
-        for j in range(lo[i], hi[i]):
-            cand.append((abs(a[i] - bs[j]), i, int(order_b[j])))
-    cand.sort()
-    used_a, used_b, pairs = set(), set(), []
-    for _, i, j in cand:
-        if i in used_a or j in used_b:
+    counts = np.maximum(hi - lo, 0)
+    total = int(counts.sum())
+    if total == 0:
+        return []
+    ia = np.repeat(np.arange(a.size), counts)
+    starts = np.repeat(lo, counts)
+    offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+    jb = order_b[starts + offsets]
+    dt = np.abs(a[ia] - b[jb])
+    keep = dt <= max_dt  # the window bounds were computed with rounded sums
+    ia, jb, dt = ia[keep], jb[keep], dt[keep]
+    order = np.lexsort((b[jb], a[ia], dt))
+    used_a = np.zeros(a.size, bool)
+    used_b = np.zeros(b.size, bool)
+    chosen = []
+    for i, j in zip(ia[order].tolist(), jb[order].tolist()):  # greedy pass: inherently sequential
+        if used_a[i] or used_b[j]:
             continue
-        used_a.add(i)
-        used_b.add(j)
-        pairs.append((int(i), j))
-    pairs.sort()
-    return pairs
+        used_a[i] = used_b[j] = True
+        chosen.append((i, j))
+    chosen.sort(key=lambda p: (a[p[0]], p[0]))
+    return chosen
 
 
 def interpolate_poses(
-    gt_stamps: np.ndarray, gt_poses: np.ndarray, query: np.ndarray, max_gap: float = 0.1
+    gt_stamps: np.ndarray, gt_poses: np.ndarray, query_stamps: np.ndarray, max_gap: float = 0.1
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (K, 4, 4) at ``query`` stamps (linear + slerp) and a validity mask (K,).
+    """Ground-truth poses (K, 4, 4) at ``query_stamps`` (K,) and a validity mask (K,).
 
-    Invalid (identity, mask False) outside the ground-truth span or where the bracketing samples
-    are more than ``max_gap`` seconds apart.
+    Between the bracketing samples the translation is interpolated linearly and the rotation by
+    slerp; a query equal to a ground-truth stamp returns that pose exactly. Queries outside the
+    ground-truth span, or whose bracketing samples are more than ``max_gap`` seconds apart, are
+    invalid: mask False and an identity pose (no NaN).
     """
-    ts = np.asarray(gt_stamps, dtype=float)
-    order = np.argsort(ts)
-    ts, P = ts[order], np.asarray(gt_poses)[order]
-    q = np.asarray(query, dtype=float)
+    ts = np.asarray(gt_stamps, dtype=float).reshape(-1)
+    P = np.asarray(gt_poses, dtype=float).reshape(-1, 4, 4)
+    if ts.shape[0] != P.shape[0]:
+        raise ValueError(f"{ts.shape[0]} ground-truth stamps but {P.shape[0]} poses")
+    order = np.argsort(ts, kind="stable")
+    ts, P = ts[order], P[order]
+    q = np.asarray(query_stamps, dtype=float).reshape(-1)
     out = np.tile(np.eye(4), (q.shape[0], 1, 1))
-    if ts.size == 0:
-        return out, np.zeros(q.shape[0], bool)
-    j = np.clip(np.searchsorted(ts, q, side="right"), 1, max(ts.size - 1, 1))
-    i = j - 1
-    exact = np.isclose(q, ts[np.minimum(i, ts.size - 1)], atol=1e-9, rtol=0)
-    valid = (q >= ts[0]) & (q <= ts[-1]) & ((ts[j] - ts[i] <= max_gap) | exact) if ts.size > 1 else exact
-    if ts.size == 1:
-        out[exact] = P[0]
+    valid = np.zeros(q.shape[0], bool)
+    m = ts.shape[0]
+    if m == 0 or q.shape[0] == 0:
         return out, valid
-    dt = np.where(ts[j] > ts[i], ts[j] - ts[i], 1.0)
-    s = np.clip((q - ts[i]) / dt, 0.0, 1.0)
-    t = (1 - s)[:, None] * P[i, :3, 3] + s[:, None] * P[j, :3, 3]
-    q0 = matrix_to_quat(P[i, :3, :3])
-    q1 = matrix_to_quat(P[j, :3, :3])
-    dot = np.sum(q0 * q1, axis=1)
-    q1 = np.where(dot[:, None] < 0, -q1, q1)
-    dot = np.abs(dot)
-    omega = np.arccos(np.clip(dot, -1.0, 1.0))
-    so = np.sin(omega)
-    lin = so < 1e-9
-    w0 = np.where(lin, 1 - s, np.sin((1 - s) * omega) / np.where(lin, 1.0, so))
-    w1 = np.where(lin, s, np.sin(s * omega) / np.where(lin, 1.0, so))
-    qs = w0[:, None] * q0 + w1[:, None] * q1
-    poses = make_pose(quat_to_matrix(qs), t)
-    out[valid] = poses[valid]
+
+    j = np.searchsorted(ts, q, side="right")  # first sample strictly after q
+    i = np.clip(j - 1, 0, m - 1)
+    exact = (j >= 1) & (ts[i] == q)
+    jj = np.minimum(j, m - 1)
+    interp = ~exact & (q > ts[0]) & (q < ts[-1]) & (ts[jj] - ts[i] <= max_gap)
+
+    out[exact] = P[i[exact]]
+    valid[exact] = True
+    if np.any(interp):
+        i0, i1, qi = i[interp], jj[interp], q[interp]
+        s = (qi - ts[i0]) / (ts[i1] - ts[i0])
+        t = (1.0 - s)[:, None] * P[i0, :3, 3] + s[:, None] * P[i1, :3, 3]
+        q0 = matrix_to_quat(P[i0, :3, :3])
+        q1 = matrix_to_quat(P[i1, :3, :3])
+        dot = np.sum(q0 * q1, axis=1)
+        q1 = np.where(dot[:, None] < 0, -q1, q1)  # shortest arc
+        omega = np.arccos(np.clip(np.abs(dot), -1.0, 1.0))
+        so = np.sin(omega)
+        small = so < 1e-9
+        so_safe = np.where(small, 1.0, so)
+        w0 = np.where(small, 1.0 - s, np.sin((1.0 - s) * omega) / so_safe)
+        w1 = np.where(small, s, np.sin(s * omega) / so_safe)
+        out[interp] = make_pose(quat_to_matrix(w0[:, None] * q0 + w1[:, None] * q1), t)
+        valid[interp] = True
     return out, valid
 
 
-def camera_name_from_path(path: Path) -> str | None:
-    """``"fr1"``/``"fr2"``/``"fr3"`` from a folder name containing ``freiburgN``, else None."""
-    m = re.search(r"freiburg([123])", path.name)
+def camera_name_from_path(path: str | os.PathLike) -> str | None:
+    """``"fr1"``/``"fr2"``/``"fr3"`` from a folder name containing ``freiburg1/2/3``, else None."""
+    m = re.search(r"freiburg([123])", Path(path).name, flags=re.IGNORECASE)
     return f"fr{m.group(1)}" if m else None
 
 
 class TumSequence:
     """A TUM RGB-D sequence folder; frames are associated colour/depth file pairs.
 
-    Attributes: ``path``, ``name``, ``camera_name``, ``camera`` (preset or the given camera),
-    ``timestamps`` (colour stamps, s), ``rgb_paths``, ``depth_paths``, ``groundtruth``
-    (T_world,cam (K, 4, 4) at the frame stamps, or None) and ``gt_valid`` (K,).
+    Attributes: ``path`` (absolute), ``name`` (folder name), ``camera_name`` (``"fr1"``/``"fr2"``/
+    ``"fr3"`` from the folder name, or None), ``timestamps`` (colour stamps of the frames, s, (K,)),
+    ``rgb_paths`` / ``depth_paths`` (absolute paths), ``groundtruth`` (T_world,cam (K, 4, 4) at the
+    frame stamps, or None without ``groundtruth.txt``) and ``gt_valid`` (K,) bool.
+    ``camera`` is the given camera, else the preset named by ``camera_name`` (reading it raises
+    :class:`DatasetError` when neither is known).
+
+    Raises :class:`DatasetError` when the folder, ``rgb.txt`` or ``depth.txt`` is missing, a line
+    is malformed, no frame can be associated, or a listed file of an associated frame is missing.
     """
 
-    def __init__(self, path: str | os.PathLike, camera: Camera | None = None, max_dt: float = 0.02) -> None:
-        self.path = Path(path)
+    def __init__(self, path: str | os.PathLike, camera=None, max_dt: float = 0.02, max_gap: float = 0.1) -> None:
+        self.path = Path(os.path.abspath(os.fspath(path)))
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: sequence folder does not exist")
         self.name = self.path.name
@@ -144,33 +183,54 @@ class TumSequence:
         dep_t, dep_n = read_file_list(self.path / "depth.txt")
         pairs = associate(rgb_t, dep_t, max_dt)
         if not pairs:
-            raise DatasetError(f"{self.path}: no colour frame has a depth frame within {max_dt} s")
-        self.timestamps = np.array([rgb_t[i] for i, _ in pairs])
+            raise DatasetError(
+                f"{self.path}: no frame could be associated: no colour stamp of rgb.txt ({len(rgb_t)} lines) has a "
+                f"depth stamp of depth.txt ({len(dep_t)} lines) within {max_dt} s"
+            )
+        self.timestamps = np.array([rgb_t[i] for i, _ in pairs], dtype=float)
         self.rgb_paths = [str(self.path / rgb_n[i]) for i, _ in pairs]
         self.depth_paths = [str(self.path / dep_n[j]) for _, j in pairs]
-        for listing, paths in (("rgb.txt", self.rgb_paths), ("depth.txt", self.depth_paths)):
-            missing = next((p for p in paths if not os.path.isfile(p)), None)
-            if missing is not None:
-                raise DatasetError(f"{self.path / listing} lists {missing}, which does not exist")
+        for rp, dp in zip(self.rgb_paths, self.depth_paths):
+            for listing, p in (("rgb.txt", rp), ("depth.txt", dp)):
+                if not os.path.isfile(p):
+                    raise DatasetError(f"{self.path / listing} lists {p}, which does not exist")
         self.camera_name = camera_name_from_path(self.path)
-        if camera is not None:
-            self.camera = camera
-        elif self.camera_name is not None:
-            self.camera = Camera.preset(self.camera_name)
-        else:
-            raise DatasetError(
-                f"{self.path}: cannot tell the camera from the folder name (no 'freiburg1/2/3'); pass --camera"
-            )
+        self._camera = camera
+
         self.groundtruth: np.ndarray | None = None
         self.gt_valid = np.zeros(len(self.timestamps), bool)
         gt_file = self.path / "groundtruth.txt"
         if gt_file.is_file():
             stamps, poses = load_tum_trajectory(gt_file)
             if stamps.size:
-                self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps)
+                self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps, max_gap)
+
+    @property
+    def camera(self):
+        """The camera given to the constructor, else the ``camera_name`` preset."""
+        if self._camera is None:
+            if self.camera_name is None:
+                raise DatasetError(
+                    f"{self.path}: cannot tell the camera from the folder name (no 'freiburg1/2/3'); "
+                    "pass a camera (CLI: --camera)"
+                )
+            from ..camera import Camera
+
+            self._camera = Camera.preset(self.camera_name)
+        return self._camera
 
     def __len__(self) -> int:
         return len(self.timestamps)
 
     def __getitem__(self, i: int) -> Frame:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame index {i} out of range for {n} frames")
         return Frame(float(self.timestamps[i]), self.rgb_paths[i], self.depth_paths[i])
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def __repr__(self) -> str:
+        gt = "no ground truth" if self.groundtruth is None else f"{int(self.gt_valid.sum())} with ground truth"
+        return f"TumSequence({self.name!r}, {len(self)} frames, {gt})"
