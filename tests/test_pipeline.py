@@ -79,3 +79,15 @@ def test_shared_desk_frames_not_overconfident(fr1_desk_dir, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["lost_frames"] == 0
     assert m["anees_translation"] <= 3.5 and m["anees_rotation"] <= 3.5
+
+
+def test_analyze_noise_on_sample(sample_dir, tmp_path, capsys):
+    out = tmp_path / "noise"
+    assert main(["analyze-noise", str(sample_dir), "--out", str(out), "--quiet", "--max-frames", "10"]) == 0
+    s = json.loads((out / "noise.json").read_text())
+    assert s["frame_pairs"] == 9 and s["points"] > 500
+    # inlier pixel errors against ground truth are of the order of a pixel or two, not of 8 px
+    assert 0.3 < s["pixel_error"]["robust_sigma_u"] < 5 and 0.3 < s["pixel_error"]["robust_sigma_v"] < 5
+    assert 0.3 < s["depth_residual_normalised"]["robust_sigma"] < 5
+    assert (out / "plots" / "noise.png").is_file()
+    assert "frame pairs" in capsys.readouterr().out
