@@ -21,7 +21,15 @@ from .errors import (
     InputError,
     InsufficientPairsError,
 )
-from .factors import WEIGHTINGS, is_positive_definite, residual_covariances, transfer_factor, whitened_system, whitening
+from .factors import (
+    WEIGHTINGS,
+    is_positive_definite,
+    residual_covariances,
+    transfer_factor,
+    transfer_residuals,
+    whitened_system,
+    whitening,
+)
 from .geometry import rigid_fit, rotation_angle
 
 #: Key of the relative pose in the estimator's graph.
@@ -44,6 +52,8 @@ class RelativePoseResult:
         iterations: Levenberg-Marquardt iterations summed over re-weighting passes.
         final_error: GTSAM graph error ``0.5 * sum(e^2)`` of the whitened residuals at the solution.
         num_pairs: number of point pairs used.
+        chi2_per_dof: ``sum(e^2) / (3N - 6)`` of the whitened residuals, the a-posteriori variance
+            factor (about 1 when the point covariances are right).
     """
 
     pose: gtsam.Pose3
@@ -55,6 +65,7 @@ class RelativePoseResult:
     final_error: float
     num_pairs: int
     residual_covariances: tuple[np.ndarray, np.ndarray] = field(repr=False)
+    chi2_per_dof: float = float("nan")
 
     @property
     def matrix(self) -> np.ndarray:
@@ -117,6 +128,28 @@ def initial_guess(X_k: np.ndarray, X_k1: np.ndarray, Q_k: np.ndarray, Q_k1: np.n
     return gtsam.Pose3(gtsam.Rot3(R), t)
 
 
+ROBUST_KERNELS = (None, "huber", "cauchy")
+#: Default robust threshold: sqrt of the chi2(3) 95 % quantile, in Mahalanobis distance.
+ROBUST_K = 2.7955
+
+
+def pair_mahalanobis(pose: gtsam.Pose3, X_k, X_k1, Q_k, Q_k1) -> np.ndarray:
+    """Mahalanobis distance (N,) of each pair's ``r_b`` under ``S_b = Q_k + R Q_k1 R^T`` at ``pose``."""
+    R = pose.rotation().matrix()
+    r_b, _ = transfer_residuals(R, pose.translation(), X_k, X_k1)
+    S_b, _ = residual_covariances(Q_k, Q_k1, "consistent", R)
+    return np.linalg.norm(np.einsum("nij,nj->ni", whitening(S_b / 2.0), r_b), axis=1)
+
+
+def robust_weights(d: np.ndarray, kernel: str, k: float = ROBUST_K) -> np.ndarray:
+    """IRLS weights ``rho'(d) / d``: Huber ``min(1, k/d)``, Cauchy ``1 / (1 + (d/k)^2)``."""
+    if kernel == "huber":
+        return np.minimum(1.0, k / np.maximum(d, 1e-300))
+    if kernel == "cauchy":
+        return 1.0 / (1.0 + (d / k) ** 2)
+    return np.ones_like(d)
+
+
 def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
@@ -136,6 +169,9 @@ def estimate_relative_pose(
     max_iterations: int = 50,
     max_reweights: int = 4,
     reweight_tol: float = 2e-3,
+    robust: str | None = None,
+    robust_k: float = ROBUST_K,
+    variance_factor: bool = False,
 ) -> RelativePoseResult:
     """Estimate ``T_k,k1`` and its covariance from N matched point pairs.
 
@@ -148,6 +184,12 @@ def estimate_relative_pose(
         max_iterations: Levenberg-Marquardt iterations per pass.
         max_reweights: passes of the ``consistent`` weighting, each re-evaluating the residual
             covariances at the latest rotation until it changes by less than ``reweight_tol`` rad.
+        robust: ``None``, ``"huber"`` or ``"cauchy"``: iteratively re-weighted least squares with
+            per-pair weights ``w(d)`` of the pair's Mahalanobis distance ``d`` (3 dof) and threshold
+            ``robust_k``; each pair's residual covariances are divided by its weight, so the
+            returned covariance is ``(J^T W J)^-1`` with the robust weights.
+        variance_factor: multiply the covariance by the a-posteriori variance factor
+            ``max(1, chi2 / (3N - 6))`` of the fit (adaptive pixel noise; never shrinks it).
 
     Raises:
         InputError: wrong shapes, NaN/inf, non-symmetric or non-positive-definite covariances.
@@ -168,11 +210,18 @@ def estimate_relative_pose(
     if not np.all(np.isfinite(pose.matrix())):
         raise DegenerateGeometryError("the closed-form initial fit is not finite")
 
+    if robust not in ROBUST_KERNELS:
+        raise InputError(f"unknown robust kernel {robust!r}; choose one of {ROBUST_KERNELS}")
     iterations = 0
-    passes = max_reweights if weighting == "consistent" else 1
+    passes = max_reweights if (weighting == "consistent" or robust) else 1
+    if robust:
+        passes = max(passes, 8)
+    w = np.ones(n)
     for _ in range(passes):
         R_w = pose.rotation().matrix()
         C_b, C_f = residual_covariances(Q_k, Q_k1, weighting, R_w)
+        if robust:
+            C_b, C_f = C_b / w[:, None, None], C_f / w[:, None, None]
         graph = gtsam.NonlinearFactorGraph()
         graph.add(transfer_factor(POSE_KEY, X_k, X_k1, C_b, C_f))
         values = gtsam.Values()
@@ -186,7 +235,12 @@ def estimate_relative_pose(
         pose = solution.atPose3(POSE_KEY)
         if not np.all(np.isfinite(pose.matrix())):
             raise EstimationError("Levenberg-Marquardt returned a non-finite pose")
-        if rotation_angle(R_w.T @ pose.rotation().matrix()) < reweight_tol:
+        converged = weighting == "thesis" or rotation_angle(R_w.T @ pose.rotation().matrix()) < reweight_tol
+        if robust:
+            w_new = robust_weights(pair_mahalanobis(pose, X_k, X_k1, Q_k, Q_k1), robust, robust_k)
+            converged = converged and np.max(np.abs(w_new - w)) < 1e-3
+            w = w_new
+        if converged:
             break
 
     e, J = whitened_system(pose.rotation().matrix(), pose.translation(), X_k, X_k1, whitening(C_b), whitening(C_f))
@@ -202,6 +256,10 @@ def estimate_relative_pose(
     except RuntimeError as exc:
         raise CovarianceError(f"GTSAM could not compute the marginal covariance: {exc}") from exc
     cov = scale * 0.5 * (marginal + marginal.T)
+    dof = 3 * n - 6
+    chi2_per_dof = float(e @ e) / dof if dof > 0 else float("nan")
+    if variance_factor and dof > 0:
+        cov = cov * max(1.0, chi2_per_dof)
     if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov)[0] <= 0.0:
         raise CovarianceError("the marginal covariance is not finite and positive definite")
     return RelativePoseResult(
@@ -214,4 +272,5 @@ def estimate_relative_pose(
         final_error=float(0.5 * e @ e),
         num_pairs=n,
         residual_covariances=(C_b, C_f),
+        chi2_per_dof=chi2_per_dof,
     )

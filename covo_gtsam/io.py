@@ -1,18 +1,21 @@
 """File I/O at the edges: TUM trajectories, relative-pose files with covariances, JSON.
 
-Trajectory files use the TUM format ``t tx ty tz qx qy qz qw`` (evo reads them as they are).
-Relative-pose files hold one line per frame pair::
+Trajectory files use the TUM format ``t tx ty tz qx qy qz qw`` (``%.6f`` stamps in s, ``%.9f``
+values in m and unit quaternions ``(qx, qy, qz, qw)``); evo reads them as they are. Relative-pose
+files hold one line per frame pair::
 
     t_ref t_cur tx ty tz qx qy qz qw c00 c01 ... c55
 
 where the pose is T_ref,cur (maps points of the current frame into the reference frame) and the
 36 values are its 6x6 covariance, row-major, in GTSAM's Pose3 tangent ``[rx ry rz tx ty tz]``
-with the right perturbation ``T_true = T_est * Exp(xi)``.
+(rad, m) with the right (body) perturbation ``T_true = T_est * Exp(xi)``.
+Both formats allow ``#`` comment lines and blank lines.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -20,84 +23,137 @@ from typing import IO
 
 import numpy as np
 
-from .errors import DatasetError
+from .errors import DatasetError, InputError
 from .geometry import pose_from_tum, pose_to_tum
 
+__all__ = [
+    "RELATIVE_HEADER",
+    "TRAJECTORY_HEADER",
+    "RelativePoseWriter",
+    "TrajectoryWriter",
+    "format_relative_line",
+    "format_tum_line",
+    "load_relative_poses",
+    "load_tum_trajectory",
+    "write_json",
+    "write_relative_header",
+    "write_tum_trajectory",
+]
+
 RELATIVE_HEADER = (
-    "# covo-gtsam relative poses\n"
+    "# covo-gtsam relative poses, one line per frame pair:\n"
     "# t_ref t_cur tx ty tz qx qy qz qw c00 c01 ... c55\n"
-    "# pose: T_ref,cur maps points of the current camera frame into the reference camera frame\n"
-    "# covariance: 6x6 row-major, GTSAM Pose3 tangent [rx ry rz tx ty tz] (rad, m),\n"
-    "#   right perturbation T_true = T_est * Exp(xi)\n"
+    "# t_ref, t_cur: timestamps (s) of the reference and current frames\n"
+    "# pose: T_ref,cur (m, unit quaternion qx qy qz qw) maps points of the current camera frame into the\n"
+    "#   reference camera frame\n"
+    "# c00 ... c55: 6x6 covariance, row-major, in GTSAM's Pose3 tangent order [rx ry rz tx ty tz] (rad, m),\n"
+    "#   right (body) perturbation T_true = T_est * Exp(xi)\n"
 )
-TRAJECTORY_HEADER = "# timestamp tx ty tz qx qy qz qw (T_world,cam; world = first camera frame)\n"
+TRAJECTORY_HEADER = "# timestamp tx ty tz qx qy qz qw (pose T_world,cam: maps camera-frame points into the world frame)\n"
+
+_TUM_COLS = 8
+_REL_COLS = 2 + 7 + 36
 
 
-def _load_rows(path: str | os.PathLike, min_cols: int) -> np.ndarray:
+def _load_rows(path: str | os.PathLike, ncols: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """Numeric rows (N, ncols) of a whitespace-separated file and their line numbers (N,).
+
+    '#' comment lines and blank lines are skipped; other malformed lines raise :class:`DatasetError`.
+    """
     p = Path(path)
     try:
         lines = p.read_text().splitlines()
-    except OSError as exc:
-        raise DatasetError(f"{p}: cannot read ({exc.strerror or exc})") from exc
-    rows = []
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{p}: cannot read ({getattr(exc, 'strerror', None) or exc})") from exc
+    rows, line_nos = [], []
     for no, line in enumerate(lines, 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
         parts = s.replace(",", " ").split()
+        if len(parts) != ncols:
+            raise DatasetError(f"{p}:{no}: expected {ncols} values ({what}), got {len(parts)}")
         try:
-            vals = [float(x) for x in parts]
+            rows.append([float(x) for x in parts])
+            line_nos.append(no)
         except ValueError:
-            raise DatasetError(f"{p}:{no}: not a line of numbers: {s[:60]!r}") from None
-        if len(vals) < min_cols:
-            raise DatasetError(f"{p}:{no}: expected {min_cols} values, got {len(vals)}")
-        rows.append(vals[:min_cols])
-    return np.array(rows, dtype=float).reshape(-1, min_cols)
+            raise DatasetError(f"{p}:{no}: not a line of numbers: {s[:80]!r}") from None
+    return np.array(rows, dtype=float).reshape(-1, ncols), np.array(line_nos, dtype=int)
+
+
+def _poses_from_rows(p: str | os.PathLike, rows: np.ndarray, line_nos: np.ndarray, col: int) -> np.ndarray:
+    """4x4 poses from TUM columns ``tx ty tz qx qy qz qw`` starting at ``col``; checks the quaternions."""
+    tum = rows[:, col : col + 7]
+    norm = np.linalg.norm(tum[:, 3:7], axis=1)
+    bad = np.flatnonzero(~np.isfinite(tum).all(axis=1) | ~(norm > 1e-12))
+    if bad.size:
+        raise DatasetError(f"{p}:{line_nos[bad[0]]}: non-finite pose value or zero quaternion")
+    return pose_from_tum(tum).reshape(-1, 4, 4)
+
+
+def _check_pose(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        raise InputError(f"a pose must be a 4x4 matrix, got shape {T.shape}")
+    return T
 
 
 def format_tum_line(t: float, T: np.ndarray) -> str:
-    """One TUM trajectory line of a timestamp (s) and a 4x4 pose."""
-    row = pose_to_tum(T)
-    return f"{t:.6f} " + " ".join(f"{v:.9f}" for v in row) + "\n"
+    """One TUM trajectory line (with newline) of a timestamp (s) and a 4x4 pose."""
+    row = pose_to_tum(_check_pose(T))
+    return f"{float(t):.6f} " + " ".join(f"{v:.9f}" for v in row) + "\n"
 
 
 def write_tum_trajectory(path: str | os.PathLike, stamps: np.ndarray, poses: np.ndarray) -> None:
-    """Write stamps (N,) and 4x4 poses (N, 4, 4) in TUM format."""
+    """Write stamps (N,) in s and 4x4 poses (N, 4, 4) as a TUM trajectory file (one '#' header line)."""
+    stamps = np.asarray(stamps, dtype=float).reshape(-1)
+    poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+    if stamps.shape[0] != poses.shape[0]:
+        raise InputError(f"{stamps.shape[0]} stamps but {poses.shape[0]} poses")
+    rows = pose_to_tum(poses)
+    lines = [f"{t:.6f} " + " ".join(f"{v:.9f}" for v in r) + "\n" for t, r in zip(stamps.tolist(), rows.tolist())]
     with TrajectoryWriter(path) as w:
-        for t, T in zip(stamps, poses):
-            w.write(float(t), T)
+        w._write("".join(lines))
 
 
 def load_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Stamps (N,) and poses (N, 4, 4) of a TUM trajectory file (also ``groundtruth.txt``)."""
-    rows = _load_rows(path, 8)
-    return rows[:, 0], pose_from_tum(rows[:, 1:8]).reshape(-1, 4, 4)
+    """Stamps (N,) in s and poses (N, 4, 4) of a TUM trajectory file (also ``groundtruth.txt``)."""
+    rows, line_nos = _load_rows(path, _TUM_COLS, "timestamp tx ty tz qx qy qz qw")
+    return rows[:, 0].copy(), _poses_from_rows(path, rows, line_nos, 1)
 
 
 def format_relative_line(t_ref: float, t_cur: float, T: np.ndarray, cov: np.ndarray) -> str:
-    """One relative-pose line (see the module docstring)."""
-    row = pose_to_tum(T)
+    """One relative-pose line (with newline): stamps (s), T_ref,cur (4x4) and its 6x6 covariance.
+
+    Stamps ``%.6f``, pose values ``%.9f``, covariance entries ``%.9e`` (they are often < 1e-6).
+    """
+    row = pose_to_tum(_check_pose(T))
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape != (6, 6):
+        raise InputError(f"a relative-pose covariance must be 6x6, got shape {cov.shape}")
     return (
-        f"{t_ref:.6f} {t_cur:.6f} "
+        f"{float(t_ref):.6f} {float(t_cur):.6f} "
         + " ".join(f"{v:.9f}" for v in row)
         + " "
-        + " ".join(f"{v:.9e}" for v in np.asarray(cov, dtype=float).reshape(36))
+        + " ".join(f"{v:.9e}" for v in cov.reshape(36))
         + "\n"
     )
 
 
 def write_relative_header(fileobj: IO[str]) -> None:
+    """Write the '#' header lines describing the relative-pose format to an open text file."""
     fileobj.write(RELATIVE_HEADER)
 
 
 def load_relative_poses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``t_ref`` (N,), ``t_cur`` (N,), T_ref,cur (N, 4, 4) and covariances (N, 6, 6) of a relative file."""
-    rows = _load_rows(path, 45)
-    return rows[:, 0], rows[:, 1], pose_from_tum(rows[:, 2:9]).reshape(-1, 4, 4), rows[:, 9:45].reshape(-1, 6, 6)
+    """``t_ref`` (N,), ``t_cur`` (N,) in s, T_ref,cur (N, 4, 4) and covariances (N, 6, 6) of a relative file."""
+    rows, line_nos = _load_rows(path, _REL_COLS, "t_ref t_cur tx ty tz qx qy qz qw c00 ... c55")
+    poses = _poses_from_rows(path, rows, line_nos, 2)
+    return rows[:, 0].copy(), rows[:, 1].copy(), poses, rows[:, 9:45].reshape(-1, 6, 6).copy()
 
 
 class _LineWriter:
-    """Opens ``path``, writes a header, appends one flushed line per :meth:`write`."""
+    """Opens ``path`` for writing, writes a header, appends one flushed line per ``write`` call."""
 
     header = ""
 
@@ -107,12 +163,15 @@ class _LineWriter:
             self._f = open(self.path, "w")
         except OSError as exc:
             raise DatasetError(f"{self.path}: cannot write ({exc.strerror or exc})") from exc
-        self._f.write(self.header)
+        self._write(self.header)
+
+    def _write(self, text: str) -> None:
+        self._f.write(text)
         self._f.flush()
 
-    def _write(self, line: str) -> None:
-        self._f.write(line)
-        self._f.flush()
+    @property
+    def closed(self) -> bool:
+        return self._f.closed
 
     def close(self) -> None:
         self._f.close()
@@ -125,7 +184,7 @@ class _LineWriter:
 
 
 class TrajectoryWriter(_LineWriter):
-    """TUM trajectory file written line by line: ``write(t, T_world_cam)``."""
+    """TUM trajectory file written line by line: ``write(t, T_world_cam)``; usable as a context manager."""
 
     header = TRAJECTORY_HEADER
 
@@ -134,7 +193,7 @@ class TrajectoryWriter(_LineWriter):
 
 
 class RelativePoseWriter(_LineWriter):
-    """Relative-pose file written line by line: ``write(t_ref, t_cur, T_ref_cur, cov)``."""
+    """Relative-pose file written line by line: ``write(t_ref, t_cur, T_ref_cur, cov)``; a context manager."""
 
     header = RELATIVE_HEADER
 
@@ -143,27 +202,39 @@ class RelativePoseWriter(_LineWriter):
 
 
 def _plain(obj):
+    """Plain-Python copy of ``obj`` for JSON: numpy scalars/arrays, tuples, paths; NaN/inf become None."""
     if isinstance(obj, dict):
         return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
+    if isinstance(obj, (list, tuple, set, frozenset)):
         return [_plain(v) for v in obj]
     if isinstance(obj, np.ndarray):
         return _plain(obj.tolist())
     if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
+        return _plain(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
         return None
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
     return obj
 
 
 def write_json(path: str | os.PathLike, obj) -> None:
-    """Write ``obj`` as indented JSON atomically (temporary file + rename); numpy values become plain."""
+    """Write ``obj`` as indented JSON atomically (temporary file in the same folder, then ``os.replace``).
+
+    numpy scalars and arrays become plain Python numbers and lists; NaN and inf become ``null``.
+    """
     p = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=p.parent)
+    text = json.dumps(_plain(obj), indent=2, allow_nan=False) + "\n"
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    except OSError as exc:
+        raise DatasetError(f"{p}: cannot write ({exc.strerror or exc})") from exc
     try:
         with os.fdopen(fd, "w") as f:
-            json.dump(_plain(obj), f, indent=2)
-            f.write("\n")
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
         os.replace(tmp, p)
     except BaseException:
         if os.path.exists(tmp):

@@ -1,6 +1,7 @@
-"""Trajectory and consistency metrics: RPE, ATE, NEES (pure functions on numpy arrays).
+"""Trajectory and consistency metrics: RPE, ATE, NEES, chi-square helpers (pure numpy functions).
 
-Poses are 4x4 matrices T_world,cam. Rotational errors are in radians unless a name says deg.
+Poses are 4x4 matrices T_world,cam (translations in m). Rotational errors are in radians unless a
+name says deg. Tangent vectors follow GTSAM: ``xi = [omega, v]`` with ``T' = T * Exp(xi)``.
 """
 
 from __future__ import annotations
@@ -9,16 +10,42 @@ import math
 
 import numpy as np
 
+from .errors import InputError
 from .geometry import invert_pose, rotation_angle, skew
+
+__all__ = [
+    "anees",
+    "ate",
+    "chi2_cdf",
+    "chi2_pdf",
+    "chi2_quantile",
+    "nees",
+    "relative_pose_errors",
+    "relative_pose_nees",
+    "rpe",
+    "se3_log",
+    "umeyama_alignment",
+]
+
+
+def _pose_pair(poses_gt: np.ndarray, poses_est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    G = np.asarray(poses_gt, dtype=float)
+    P = np.asarray(poses_est, dtype=float)
+    if G.ndim != 3 or G.shape[1:] != (4, 4) or G.shape != P.shape:
+        raise InputError(f"need two pose arrays of the same shape (N, 4, 4), got {G.shape} and {P.shape}")
+    return G, P
 
 
 def relative_pose_errors(poses_gt: np.ndarray, poses_est: np.ndarray, delta: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """TUM-benchmark RPE over ``delta`` frames: ``E_i = (G_i^-1 G_i+d)^-1 (P_i^-1 P_i+d)`` (5.1).
+    """TUM-benchmark relative pose errors over ``delta`` frames, for every ``i`` with ``i + delta < N``.
 
-    Returns translational errors ``||trans(E_i)||`` (m) and rotation angles of ``E_i`` (rad), (m,).
+    ``E_i = (G_i^-1 G_{i+delta})^-1 (P_i^-1 P_{i+delta})`` for ground truth ``G`` and estimate ``P``
+    (N, 4, 4), both T_world,cam. Returns ``||trans(E_i)||`` (m) and ``angle(E_i)`` (rad), each (N - delta,).
     """
-    G = np.asarray(poses_gt, dtype=float)
-    P = np.asarray(poses_est, dtype=float)
+    G, P = _pose_pair(poses_gt, poses_est)
+    delta = int(delta)
+    if not 1 <= delta < G.shape[0]:
+        raise InputError(f"delta must be in [1, {G.shape[0] - 1}] for {G.shape[0]} poses, got {delta}")
     rel_g = invert_pose(G[:-delta]) @ G[delta:]
     rel_p = invert_pose(P[:-delta]) @ P[delta:]
     E = invert_pose(rel_g) @ rel_p
@@ -26,7 +53,11 @@ def relative_pose_errors(poses_gt: np.ndarray, poses_est: np.ndarray, delta: int
 
 
 def rpe(poses_gt: np.ndarray, poses_est: np.ndarray, delta: int = 1) -> dict:
-    """RMSE (5.2) and summary of the RPE over ``delta`` frames."""
+    """RPE statistics over ``delta`` frames (all pairs ``(i, i + delta)``).
+
+    Keys: ``trans_rmse``, ``trans_mean``, ``trans_median`` (m), ``rot_rmse_deg``, ``rot_mean_deg``,
+    ``n`` (number of pairs), ``delta_frames``.
+    """
     tr, rot = relative_pose_errors(poses_gt, poses_est, delta)
     return {
         "delta_frames": int(delta),
@@ -39,27 +70,38 @@ def rpe(poses_gt: np.ndarray, poses_est: np.ndarray, delta: int = 1) -> dict:
     }
 
 
-def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, s)`` minimising ``||dst - (s R src + t)||`` over points (N, 3) (Umeyama 1991)."""
+def umeyama_alignment(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, t, s)`` minimising ``sum ||dst_i - (s R src_i + t)||^2`` over points (N, 3) (Umeyama 1991).
+
+    ``R`` is a proper rotation (det +1); ``s`` is 1.0 unless ``with_scale``.
+    """
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
+    if src.ndim != 2 or src.shape[1] != 3 or src.shape != dst.shape or src.shape[0] < 2:
+        raise InputError(f"need two point arrays of the same shape (N>=2, 3), got {src.shape} and {dst.shape}")
     mu_s, mu_d = src.mean(0), dst.mean(0)
     xs, xd = src - mu_s, dst - mu_d
     cov = xd.T @ xs / src.shape[0]
     U, D, Vt = np.linalg.svd(cov)
     S = np.eye(3)
     if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1
+        S[2, 2] = -1.0
     R = U @ S @ Vt
-    s = float(np.trace(np.diag(D) @ S) / np.mean(np.sum(xs**2, 1))) if with_scale else 1.0
+    s = float(np.sum(D * np.diag(S)) / np.mean(np.sum(xs**2, axis=1))) if with_scale else 1.0
     t = mu_d - s * R @ mu_s
     return R, t, s
 
 
 def ate(poses_gt: np.ndarray, poses_est: np.ndarray, with_scale: bool = False) -> dict:
-    """Absolute trajectory error (m) of the positions after SE(3) (or Sim(3)) Umeyama alignment."""
-    pg = np.asarray(poses_gt)[:, :3, 3]
-    pe = np.asarray(poses_est)[:, :3, 3]
+    """Absolute trajectory error (m) of the positions after aligning the estimate to the ground truth.
+
+    The alignment is SE(3) (Sim(3) with ``with_scale``) by :func:`umeyama_alignment` on the positions.
+    Keys: ``rmse``, ``mean``, ``median``, ``max`` (m), ``n``, ``scale``.
+    """
+    G, P = _pose_pair(poses_gt, poses_est)
+    pg, pe = G[:, :3, 3], P[:, :3, 3]
     R, t, s = umeyama_alignment(pe, pg, with_scale)
     err = np.linalg.norm(pg - (s * pe @ R.T + t), axis=1)
     return {
@@ -68,119 +110,172 @@ def ate(poses_gt: np.ndarray, poses_est: np.ndarray, with_scale: bool = False) -
         "median": float(np.median(err)),
         "max": float(np.max(err)),
         "n": int(err.shape[0]),
+        "scale": float(s),
     }
 
 
 def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """``e^T C^-1 e`` for errors (N, d) and covariances (N, d, d)."""
+    """Normalised estimation error squared ``e_i^T C_i^-1 e_i`` of errors (N, d) and covariances (N, d, d) -> (N,)."""
     err = np.asarray(err, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    if err.ndim != 2 or cov.shape != err.shape + (err.shape[1],):
+        raise InputError(f"need errors (N, d) and covariances (N, d, d), got {err.shape} and {cov.shape}")
     return np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
 
 
 def anees(values: np.ndarray) -> float:
-    """Average NEES (5.5)."""
-    return float(np.mean(values))
+    """Average NEES of NEES values (N,); divide by nothing (compare with the dof, e.g. 3)."""
+    return float(np.mean(np.asarray(values, dtype=float)))
 
 
 def se3_log(T: np.ndarray) -> np.ndarray:
-    """GTSAM's ``Pose3.Logmap`` of 4x4 poses (N, 4, 4) -> (N, 6) ``[omega, v]``."""
-    T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
+    """GTSAM's ``Pose3.Logmap`` of 4x4 poses (..., 4, 4) -> (..., 6) ``[omega, v]`` (rad, m), vectorised.
+
+    Rotations within 1e-4 rad of pi (rare) go through ``gtsam.Rot3.Logmap`` one by one.
+    """
+    T = np.asarray(T, dtype=float)
+    shape = T.shape[:-2]
+    T = T.reshape(-1, 4, 4)
     R = T[:, :3, :3]
-    theta = rotation_angle(R)
-    W = 0.5 * (R - np.swapaxes(R, 1, 2))
-    w_hat = np.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], 1)
-    small = theta < 1e-8
-    scale = np.where(small, 1.0, theta / np.where(small, 1.0, np.sin(theta)))
-    near_pi = theta > np.pi - 1e-6
+    w_hat = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    sin_t = np.linalg.norm(w_hat, axis=1)
+    cos_t = 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0)
+    theta = np.arctan2(sin_t, cos_t)
+    tiny = sin_t < 1e-300
+    scale = np.where(tiny, 1.0, theta / np.where(tiny, 1.0, sin_t))
     omega = w_hat * scale[:, None]
-    if np.any(near_pi):  # sin(theta) ~ 0: use the symmetric part
+    near_pi = theta > np.pi - 1e-4
+    if np.any(near_pi):  # sin(theta) ~ 0 loses the axis: use GTSAM's special case
         import gtsam
 
         for i in np.flatnonzero(near_pi):
             omega[i] = gtsam.Rot3.Logmap(gtsam.Rot3(R[i]))
-            theta[i] = np.linalg.norm(omega[i])
-    # V^-1 = I - 1/2 [w] + (1/th^2)(1 - th sin th / (2(1 - cos th))) [w]^2
-    Wx = skew(omega)
-    th2 = theta**2
-    safe = np.where(theta < 1e-5, 1.0, theta)
-    coef = np.where(
-        theta < 1e-5, 1.0 / 12.0, (1 - safe * np.sin(safe) / (2 * (1 - np.cos(safe)))) / np.where(theta < 1e-5, 1.0, th2)
-    )
-    Vinv = np.eye(3) - 0.5 * Wx + coef[:, None, None] * (Wx @ Wx)
+        theta = np.where(near_pi, np.linalg.norm(omega, axis=1), theta)
+    # v = V^-1 t, V^-1 = I - 1/2 [w] + c(theta) [w]^2, c = (1 - (theta/2) / tan(theta/2)) / theta^2
+    small = theta < 1e-2
+    th = np.where(small, 1.0, theta)
+    half = 0.5 * th
+    c = np.where(small, 1.0 / 12.0 + theta**2 / 720.0 + theta**4 / 30240.0, (1.0 - half / np.tan(half)) / th**2)
+    W = skew(omega)
+    Vinv = np.eye(3) - 0.5 * W + c[:, None, None] * (W @ W)
     v = np.einsum("nij,nj->ni", Vinv, T[:, :3, 3])
-    return np.concatenate([omega, v], 1)
+    return np.concatenate([omega, v], axis=1).reshape(shape + (6,))
 
 
 def relative_pose_nees(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """NEES of rotation and translation (3 dof each) of relative poses.
+    """NEES of the rotation and of the translation (3 dof each) of relative poses.
 
-    The error is ``xi = Log(T_est^-1 T_true)`` in GTSAM's tangent ``[omega, v]`` (right
-    perturbation, the convention of the covariance); the rotation NEES uses ``cov[:3, :3]``
-    with ``xi[:3]``, the translation NEES ``cov[3:, 3:]`` with ``xi[3:]``.
+    ``T_est``, ``T_true``: (N, 4, 4) estimated and true T_ref,cur; ``cov``: (N, 6, 6) covariance of the
+    estimate in GTSAM's tangent ``[omega, v]`` (rad, m) with the right perturbation
+    ``T_true = T_est * Exp(xi)``. The error is ``xi = Log(T_est^-1 T_true)`` (GTSAM ``Pose3.Logmap``);
+    ``nees_rot`` uses ``xi[:3]`` with ``cov[:3, :3]``, ``nees_trans`` uses ``xi[3:]`` with ``cov[3:, 3:]``.
+    Returns ``(nees_rot (N,), nees_trans (N,))``.
     """
-    xi = se3_log(invert_pose(T_est) @ np.asarray(T_true))
+    T_est, T_true = _pose_pair(T_est, T_true)
     cov = np.asarray(cov, dtype=float)
+    if cov.shape != (T_est.shape[0], 6, 6):
+        raise InputError(f"need covariances ({T_est.shape[0]}, 6, 6), got {cov.shape}")
+    xi = se3_log(invert_pose(T_est) @ T_true)
     return nees(xi[:, :3], cov[:, :3, :3]), nees(xi[:, 3:], cov[:, 3:, 3:])
 
 
-def _gamma_p(a: float, x: float) -> float:
-    """Regularised lower incomplete gamma P(a, x) (series / continued fraction, Numerical Recipes)."""
-    if x <= 0:
-        return 0.0
-    gln = math.lgamma(a)
-    if x < a + 1:
-        ap, s, d = a, 1.0 / a, 1.0 / a
-        for _ in range(1000):
-            ap += 1
-            d *= x / ap
-            s += d
-            if abs(d) < abs(s) * 1e-15:
+# ---- chi-square distribution without scipy ----------------------------------------------------
+
+
+def _gamma_pq(a: float, x: float) -> tuple[float, float]:
+    """Regularised incomplete gamma ``(P(a, x), Q(a, x) = 1 - P)``, each accurate in its own tail.
+
+    Series for ``x < a + 1``, Lentz continued fraction otherwise (Numerical Recipes 6.2).
+    """
+    if x <= 0.0:
+        return 0.0, 1.0
+    if math.isinf(x):
+        return 1.0, 0.0
+    log_pref = -x + a * math.log(x) - math.lgamma(a)
+    if x < a + 1.0:
+        ap, term, total = a, 1.0 / a, 1.0 / a
+        for _ in range(10000):
+            ap += 1.0
+            term *= x / ap
+            total += term
+            if abs(term) < abs(total) * 1e-16:
                 break
-        return s * math.exp(-x + a * math.log(x) - gln)
-    b = x + 1 - a
-    c = 1.0 / 1e-300
+        p = total * math.exp(log_pref)
+        return p, 1.0 - p
+    tiny = 1e-300
+    b = x + 1.0 - a
+    c = 1.0 / tiny
     d = 1.0 / b
     h = d
-    for i in range(1, 1000):
+    for i in range(1, 10000):
         an = -i * (i - a)
-        b += 2
+        b += 2.0
         d = an * d + b
-        d = 1e-300 if abs(d) < 1e-300 else d
+        d = tiny if abs(d) < tiny else d
         c = b + an / c
-        c = 1e-300 if abs(c) < 1e-300 else c
+        c = tiny if abs(c) < tiny else c
         d = 1.0 / d
-        delta = d * c
-        h *= delta
-        if abs(delta - 1) < 1e-15:
+        step = d * c
+        h *= step
+        if abs(step - 1.0) < 1e-16:
             break
-    return 1.0 - math.exp(-x + a * math.log(x) - gln) * h
+    q = math.exp(log_pref) * h
+    return 1.0 - q, q
 
 
-def chi2_cdf(x: float, dof: int) -> float:
-    return _gamma_p(dof / 2.0, x / 2.0)
+def _check_dof(dof: float) -> float:
+    dof = float(dof)
+    if not dof > 0 or not math.isfinite(dof):
+        raise InputError(f"degrees of freedom must be > 0, got {dof}")
+    return dof
 
 
-def chi2_quantile(p: float, dof: int) -> float:
-    """Quantile of the chi-square distribution (bisection on the CDF, 1e-12 relative)."""
-    if not 0 < p < 1:
-        raise ValueError("p must be in (0, 1)")
-    lo, hi = 0.0, max(1.0, dof + 20 * math.sqrt(2 * dof))
-    while chi2_cdf(hi, dof) < p:
-        hi *= 2
-    for _ in range(200):
+def chi2_cdf(x: float, dof: float) -> float:
+    """Chi-square CDF ``P(dof/2, x/2)`` (scalar)."""
+    return _gamma_pq(_check_dof(dof) / 2.0, float(x) / 2.0)[0]
+
+
+def chi2_quantile(p: float, dof: float) -> float:
+    """Chi-square quantile: ``x`` with ``CDF(x; dof) = p``, for ``0 < p < 1``.
+
+    Bisection on the regularised incomplete gamma (lower tail for p <= 0.5, upper tail above),
+    to ~1e-13 relative; e.g. ``chi2_quantile(0.975, 3) = 9.3484``.
+    """
+    dof = _check_dof(dof)
+    p = float(p)
+    if not 0.0 < p < 1.0:
+        raise InputError(f"p must be in (0, 1), got {p}")
+    a = dof / 2.0
+    upper = p > 0.5
+    target = 1.0 - p if upper else p
+
+    def below(x: float) -> bool:  # True when the quantile is above x
+        P, Q = _gamma_pq(a, x / 2.0)
+        return Q > target if upper else P < target
+
+    lo, hi = 0.0, max(1.0, dof + 10.0 * math.sqrt(2.0 * dof))
+    while below(hi):
+        lo, hi = hi, 2.0 * hi
+    for _ in range(2000):
         mid = 0.5 * (lo + hi)
-        if chi2_cdf(mid, dof) < p:
+        if mid <= lo or mid >= hi:
+            break
+        if below(mid):
             lo = mid
         else:
             hi = mid
-        if hi - lo < 1e-12 * hi:
+        if hi - lo <= 1e-14 * hi:
             break
     return 0.5 * (lo + hi)
 
 
-def chi2_pdf(x: np.ndarray, dof: int) -> np.ndarray:
-    """Chi-square density."""
+def chi2_pdf(x: np.ndarray, dof: float) -> np.ndarray:
+    """Chi-square density at ``x`` (any shape); 0 for x < 0."""
+    dof = _check_dof(dof)
     x = np.asarray(x, dtype=float)
     k = dof / 2.0
-    with np.errstate(divide="ignore"):
-        return np.where(x > 0, np.exp((k - 1) * np.log(np.where(x > 0, x, 1)) - x / 2 - k * math.log(2) - math.lgamma(k)), 0.0)
+    pos = x > 0
+    xs = np.where(pos, x, 1.0)
+    dens = np.exp((k - 1.0) * np.log(xs) - xs / 2.0 - k * math.log(2.0) - math.lgamma(k))
+    at0 = 0.5 if dof == 2 else (np.inf if dof < 2 else 0.0)
+    return np.where(pos, dens, np.where(x == 0, at0, 0.0))

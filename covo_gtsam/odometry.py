@@ -34,6 +34,9 @@ class OdometryConfig:
     model cannot see); they are added to each relative covariance. Defaults are calibrated once
     for the sensor on the first half of the shared fr1_rpy frames, see docs/consistency.md.
 
+    ``robust`` (``"huber"``/``"cauchy"``) and ``variance_factor`` select the estimator's robust
+    re-weighting and a-posteriori variance scaling (see :func:`estimate_relative_pose`).
+
     With ``keyframes`` frames are matched to a keyframe until the point pairs drop
     below ``keyframe_ratio`` times the count of the first frame matched to it (at least twice
     ``frontend.min_pairs``); then the last tracked frame becomes the keyframe. Each emitted
@@ -49,6 +52,8 @@ class OdometryConfig:
     depth_scale: float = 5000.0
     keyframes: bool = False
     keyframe_ratio: float = 0.5
+    robust: str | None = None
+    variance_factor: bool = False
     frame_sigma_rot_deg: float = 0.30
     frame_sigma_trans_m: float = 0.0041
 
@@ -203,6 +208,7 @@ class VisualOdometry:
             res = estimate_relative_pose(
                 pairs.X_ref, pairs.X_cur, pairs.Q_ref, pairs.Q_cur,
                 weighting=self.config.weighting, scale=self.config.scale,
+                robust=self.config.robust, variance_factor=self.config.variance_factor,
                 initial=None if pairs.T_init is None else gtsam.Pose3(pairs.T_init),
             )
         except EstimationError as exc:

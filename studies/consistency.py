@@ -33,6 +33,13 @@ SIM_VARIANTS = {
 REAL_VARIANTS = {
     "default (consistent, 2 px, frame term)": OdometryConfig(),
     "consistent, 2 px, no frame term": OdometryConfig(frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0),
+    "consistent, 2 px, no frame term, variance factor": OdometryConfig(
+        frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0, variance_factor=True),
+    "consistent, 2 px, no frame term, Huber": OdometryConfig(frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
+                                                             robust="huber"),
+    "consistent, 2 px, no frame term, Cauchy": OdometryConfig(frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
+                                                              robust="cauchy"),
+    "default + Huber": OdometryConfig(robust="huber"),
     "consistent, 8 px, no frame term": OdometryConfig(pixel_sigma=8.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0),
     "thesis, 8 px, phi = 1": OdometryConfig(pixel_sigma=8.0, weighting="thesis", frame_sigma_rot_deg=0.0,
                                            frame_sigma_trans_m=0.0),

@@ -167,3 +167,20 @@ def test_degenerate_geometry_raises(kind):
         estimate_relative_pose(X0, X1, Q, Q)
     assert isinstance(info.value, (DegenerateGeometryError, CovoError))
     assert "degrees of freedom" in str(info.value) or "Marginal" in str(info.value) or "covariance" in str(info.value)
+
+
+def test_robust_kernels_resist_gross_outliers_and_variance_factor():
+    scene, X0, X1, Q0, Q1 = sim_pairs(n=300, px=2.0)
+    X1 = X1.copy()
+    X1[:40] += 0.3  # 40 gross outliers
+    T_true = gtsam.Pose3(scene.T01)
+    plain = estimate_relative_pose(X0, X1, Q0, Q1)
+    for kernel in ("huber", "cauchy"):
+        r = estimate_relative_pose(X0, X1, Q0, Q1, robust=kernel)
+        err = np.abs(gtsam.Pose3.Logmap(r.pose.between(T_true))).max()
+        assert err < 0.2 * np.abs(gtsam.Pose3.Logmap(plain.pose.between(T_true))).max()
+    assert plain.chi2_per_dof > 3  # the outliers show in the a-posteriori variance factor
+    vf = estimate_relative_pose(X0, X1, Q0, Q1, variance_factor=True)
+    np.testing.assert_allclose(vf.covariance, plain.covariance * plain.chi2_per_dof, rtol=1e-9)
+    with pytest.raises(InputError, match="robust"):
+        estimate_relative_pose(X0, X1, Q0, Q1, robust="tukey")
