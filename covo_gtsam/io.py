@@ -55,21 +55,29 @@ _TUM_COLS = 8
 _REL_COLS = 2 + 7 + 36
 
 
+def data_lines(path: Path):
+    """``(line number, stripped line)`` of a text file, skipping blank and ``#`` comment lines.
+
+    Raises :class:`DatasetError` naming the file when it cannot be read.
+    """
+    try:
+        lines = Path(path).read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from exc
+    for no, line in enumerate(lines, 1):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            yield no, s
+
+
 def _load_rows(path: str | os.PathLike, ncols: int, what: str) -> tuple[np.ndarray, np.ndarray]:
     """Numeric rows (N, ncols) of a whitespace-separated file and their line numbers (N,).
 
     '#' comment lines and blank lines are skipped; other malformed lines raise :class:`DatasetError`.
     """
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{p}: cannot read ({getattr(exc, 'strerror', None) or exc})") from exc
     rows, line_nos = [], []
-    for no, line in enumerate(lines, 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
+    for no, s in data_lines(p):
         parts = s.replace(",", " ").split()
         if len(parts) != ncols:
             raise DatasetError(f"{p}:{no}: expected {ncols} values ({what}), got {len(parts)}")

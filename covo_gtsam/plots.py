@@ -38,7 +38,8 @@ def nees_histogram(ax, nees: np.ndarray, title: str, dof: int = 3) -> None:
     ax.legend(fontsize=8)
 
 
-def _ellipse_xy(ax, center: np.ndarray, cov2: np.ndarray, nsigma: float = 3.0, **kw) -> None:
+def ellipse_xy(ax, center: np.ndarray, cov2: np.ndarray, nsigma: float = 3.0, **kw) -> None:
+    """Draw the ``nsigma`` ellipse of a 2x2 covariance around ``center`` on a matplotlib axis."""
     vals, vecs = np.linalg.eigh(0.5 * (cov2 + cov2.T))
     vals = np.maximum(vals, 0.0)
     a = np.linspace(0, 2 * np.pi, 60)
@@ -74,7 +75,7 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
         for k in range(0, len(tracked), every):
             R = P[k, :3, :3]
             cov_w = R @ covs[k][3:, 3:] @ R.T  # translation block is body-frame; rotate to world
-            _ellipse_xy(ax, P[k, [i, j], 3], cov_w[np.ix_([i, j], [i, j])], color="tab:orange", lw=0.8)
+            ellipse_xy(ax, P[k, [i, j], 3], cov_w[np.ix_([i, j], [i, j])], color="tab:orange", lw=0.8)
         ax.plot([], [], color="tab:orange", lw=0.8, label="3$\\sigma$ (composed)")
         ax.set_xlabel(f"{'xyz'[i]} [m] (first camera frame)")
         ax.set_ylabel(f"{'xyz'[j]} [m]")

@@ -71,6 +71,7 @@ from covo_gtsam.graph import between_factors, step_keys, unit_between_factors
 from covo_gtsam.metrics import ate
 from covo_gtsam.odometry import OdometryConfig
 from covo_gtsam.pipeline import run_sequence
+from covo_gtsam.plots import ellipse_xy
 
 #: Constant odometry covariance of the ``unit`` variant: 0.01 rad and 0.01 m standard deviations.
 UNIT_SIGMA = 1e-2
@@ -202,10 +203,7 @@ def plot_results(out: Path, variants: dict, gt_rel: dict, vo_poses: dict, fixes:
                 continue
             R = v["poses"][i].rotation().matrix()
             C = (R @ v["marginals"][i][3:, 3:] @ R.T)[np.ix_([a, b], [a, b])]
-            vals, vecs = np.linalg.eigh(0.5 * (C + C.T))
-            ang = np.linspace(0, 2 * np.pi, 60)
-            pts = (vecs @ (3 * np.sqrt(np.maximum(vals, 0))[:, None] * np.stack([np.cos(ang), np.sin(ang)]))).T
-            ax.plot(pts[:, 0] + P[n_, a], pts[:, 1] + P[n_, b], color="tab:orange", lw=0.7)
+            ellipse_xy(ax, P[n_, [a, b]], C, color="tab:orange", lw=0.7)
         ax.plot([], [], color="tab:orange", lw=0.7, label="3$\\sigma$ (iSAM2 marginal)")
         F = np.array([fixes[i] for i in indices if i in fixes]).reshape(-1, 3)
         ax.plot(F[:, a], F[:, b], "r+", ms=9, mew=1.5, label="position fixes")

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..geometry import make_pose, matrix_to_quat, quat_to_matrix
-from ..io import load_tum_trajectory
+from ..io import data_lines, load_tum_trajectory
 
 __all__ = ["Frame", "TumSequence", "associate", "interpolate_poses", "read_file_list", "camera_name_from_path"]
 
@@ -38,15 +38,8 @@ def read_file_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
     naming the file and line number.
     """
     p = Path(path)
-    try:
-        lines = p.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{p}: cannot read ({getattr(exc, 'strerror', None) or exc})") from exc
     stamps, names = [], []
-    for no, line in enumerate(lines, 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
+    for no, s in data_lines(p):
         parts = s.split()
         try:
             if len(parts) != 2:
