@@ -37,6 +37,10 @@ class OdometryConfig:
     ``robust`` (``"huber"``/``"cauchy"``) and ``variance_factor`` select the estimator's robust
     re-weighting and a-posteriori variance scaling (see :func:`estimate_relative_pose`).
 
+    A relative pose rotating more than ``max_rotation_deg`` or moving more than
+    ``max_translation_m`` from its reference frame is not accepted (the frame is lost): such a
+    jump is far more likely a wrong match (e.g. a swapped or flipped image) than real motion.
+
     With ``keyframes`` frames are matched to a keyframe until the point pairs drop
     below ``keyframe_ratio`` times the count of the first frame matched to it (at least twice
     ``frontend.min_pairs``); then the last tracked frame becomes the keyframe. Each emitted
@@ -54,6 +58,8 @@ class OdometryConfig:
     keyframe_ratio: float = 0.5
     robust: str | None = None
     variance_factor: bool = False
+    max_rotation_deg: float = 30.0
+    max_translation_m: float = 0.5
     frame_sigma_rot_deg: float = 0.30
     frame_sigma_trans_m: float = 0.0041
 
@@ -213,6 +219,12 @@ class VisualOdometry:
             )
         except EstimationError as exc:
             step.reason = str(exc)
+            return step
+        angle = float(np.rad2deg(np.linalg.norm(gtsam.Rot3.Logmap(res.pose.rotation()))))
+        dist = float(np.linalg.norm(res.pose.translation()))
+        if angle > self.config.max_rotation_deg or dist > self.config.max_translation_m:
+            step.reason = (f"implausible motion ({angle:.1f} deg, {dist:.2f} m to the reference frame; limits "
+                           f"{self.config.max_rotation_deg:g} deg, {self.config.max_translation_m:g} m)")
             return step
         step.status = "tracked"
         step.relative = res.pose
