@@ -25,7 +25,7 @@ from .factors import (
     WEIGHTINGS,
     is_positive_definite,
     residual_covariances,
-    transfer_factor,
+    whitened_transfer_factor,
     transfer_residuals,
     whitened_system,
     whitening,
@@ -150,6 +150,22 @@ def robust_weights(d: np.ndarray, kernel: str, k: float = ROBUST_K) -> np.ndarra
     return np.ones_like(d)
 
 
+def marginal_covariance(information: np.ndarray, pose: gtsam.Pose3, key: int = POSE_KEY) -> np.ndarray:
+    """``gtsam.Marginals`` covariance of ``key`` from the graph linearised at ``pose``.
+
+    The factor's whitened Jacobian ``J`` (6N x 6) at the solution enters GTSAM as the equivalent
+    6x6 Jacobian factor ``R`` with ``R^T R = J^T J = information``: the same Gaussian density up to
+    a constant, so the marginal is the same as ``gtsam.Marginals(graph, solution)`` on the
+    nonlinear graph, without a second pass of the factor over all pairs.
+    """
+    R = np.linalg.cholesky(information).T
+    linear = gtsam.GaussianFactorGraph()
+    linear.add(gtsam.JacobianFactor(key, R, np.zeros(6), gtsam.noiseModel.Unit.Create(6)))
+    values = gtsam.Values()
+    values.insert(key, pose)
+    return gtsam.Marginals(linear, values).marginalCovariance(key)
+
+
 def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
@@ -222,8 +238,9 @@ def estimate_relative_pose(
         C_b, C_f = residual_covariances(Q_k, Q_k1, weighting, R_w)
         if robust:
             C_b, C_f = C_b / w[:, None, None], C_f / w[:, None, None]
+        W_b, W_f = whitening(C_b), whitening(C_f)
         graph = gtsam.NonlinearFactorGraph()
-        graph.add(transfer_factor(POSE_KEY, X_k, X_k1, C_b, C_f))
+        graph.add(whitened_transfer_factor(POSE_KEY, X_k, X_k1, W_b, W_f))
         values = gtsam.Values()
         values.insert(POSE_KEY, pose)
         try:
@@ -243,7 +260,7 @@ def estimate_relative_pose(
         if converged:
             break
 
-    e, J = whitened_system(pose.rotation().matrix(), pose.translation(), X_k, X_k1, whitening(C_b), whitening(C_f))
+    e, J = whitened_system(pose.rotation().matrix(), pose.translation(), X_k, X_k1, W_b, W_f)
     information = J.T @ J
     eig = np.linalg.eigvalsh(information)
     if not np.all(np.isfinite(eig)) or eig[0] <= MIN_INFO_RATIO * max(eig[-1], 1e-300):
@@ -252,8 +269,8 @@ def estimate_relative_pose(
             f"(information eigenvalue ratio {eig[0] / max(eig[-1], 1e-300):.2e}); collinear or coincident points?"
         )
     try:
-        marginal = gtsam.Marginals(graph, solution).marginalCovariance(POSE_KEY)
-    except RuntimeError as exc:
+        marginal = marginal_covariance(information, pose)
+    except (RuntimeError, np.linalg.LinAlgError) as exc:
         raise CovarianceError(f"GTSAM could not compute the marginal covariance: {exc}") from exc
     cov = scale * 0.5 * (marginal + marginal.T)
     dof = 3 * n - 6

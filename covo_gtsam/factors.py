@@ -95,9 +95,12 @@ def rotate_covariances(R: np.ndarray, Q: np.ndarray) -> np.ndarray:
 
 def is_positive_definite(C: np.ndarray) -> np.ndarray:
     """Mask (N,) of symmetric 3x3 matrices that are positive definite (Sylvester's criterion)."""
-    m1 = C[:, 0, 0]
-    m2 = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
-    return (m1 > 0) & (m2 > 0) & (np.linalg.det(C) > 0)
+    a, b, c = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2]
+    d, e, f = C[:, 1, 0], C[:, 1, 1], C[:, 1, 2]
+    g, h, i = C[:, 2, 0], C[:, 2, 1], C[:, 2, 2]
+    m2 = a * e - b * d
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    return (a > 0) & (m2 > 0) & (det > 0)
 
 
 def whitening(C: np.ndarray) -> np.ndarray:
@@ -132,19 +135,20 @@ def whitened_system(
     """Whitened stacked error (6N,) and Jacobian (6N, 6), pair-major ``[W_b r_b, W_f r_f]``.
 
     Same values as whitening :func:`transfer_residuals` and :func:`transfer_jacobians`, written
-    for speed: ``R [X]x = [R X]x R``, and row i of ``W [P]x`` is ``(w_i x P)^T``.
+    for speed: row i of ``M [P]x`` is ``(m_i x P)^T`` for the rows ``m_i`` of ``M``.
     """
     n = X_k.shape[0]
-    P = X_k1 @ R.T
     Y = (X_k - t) @ R
-    e = _whitened_error(X_k - P - t, X_k1 - Y, W_b, W_f)
-    Jb = np.empty((n, 3, 6))
-    _cross_rows(W_b, P, Jb[:, :, :3])
-    Jb[:, :, 3:] = -W_b
-    J = np.empty((n, 6, 6))
-    J[:, :3] = _right_blockdiag(Jb, R)
-    _cross_rows(W_f, -Y, J[:, 3:, :3])
-    J[:, 3:, 3:] = W_f
+    e = _whitened_error(X_k - X_k1 @ R.T - t, X_k1 - Y, W_b, W_f)
+    # J_b = W_b R [[X_k1]x, -I] = [(-W_b R) [-X_k1]x, -W_b R];  J_f = [W_f [-Y]x, W_f]
+    J = np.empty((n, 2, 3, 6))
+    M = J[..., 3:]
+    M[:, 0] = (W_b.reshape(-1, 3) @ -R).reshape(n, 3, 3)
+    M[:, 1] = W_f
+    P = np.empty((n, 2, 3))
+    np.negative(X_k1, out=P[:, 0])
+    np.negative(Y, out=P[:, 1])
+    _cross_rows(M, P, J[..., :3])
     return e, J.reshape(-1, 6)
 
 
@@ -164,17 +168,15 @@ def _whitened_error(r_b: np.ndarray, r_f: np.ndarray, W_b: np.ndarray, W_f: np.n
 
 
 def _cross_rows(W: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
-    """``out[n, i] = W[n, i] x P[n]`` for W (N, 3, 3), P (N, 3), written into ``out`` (N, 3, 3)."""
-    px, py, pz = P[:, None, 0], P[:, None, 1], P[:, None, 2]
-    wx, wy, wz = W[:, :, 0], W[:, :, 1], W[:, :, 2]
-    out[:, :, 0] = wy * pz - wz * py
-    out[:, :, 1] = wz * px - wx * pz
-    out[:, :, 2] = wx * py - wy * px
+    """``out[..., i, :] = W[..., i, :] x P`` for W (..., 3, 3), P (..., 3), into ``out`` (..., 3, 3).
 
-
-def _right_blockdiag(M: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """``M @ blockdiag(R, R)`` for M (N, 3, 6)."""
-    return (M.reshape(-1, 3) @ R).reshape(M.shape)
+    That is ``W [P]x``: row i of ``W [P]x`` is ``(w_i x P)^T``.
+    """
+    px, py, pz = P[..., None, 0], P[..., None, 1], P[..., None, 2]
+    wx, wy, wz = W[..., 0], W[..., 1], W[..., 2]
+    out[..., 0] = wy * pz - wz * py
+    out[..., 1] = wz * px - wx * pz
+    out[..., 2] = wx * py - wy * px
 
 
 def between_jacobian(T: gtsam.Pose3) -> np.ndarray:
@@ -213,8 +215,14 @@ def transfer_factor(
     key: int, X_k: np.ndarray, X_k1: np.ndarray, C_b: np.ndarray, C_f: np.ndarray
 ) -> gtsam.CustomFactor:
     """Vectorised unary factor over all N pairs on the relative-pose key ``T_k,k1``."""
-    n = X_k.shape[0]
-    return _custom_factor([key], gtsam.noiseModel.Unit.Create(6 * n), X_k, X_k1, whitening(C_b), whitening(C_f))
+    return whitened_transfer_factor(key, X_k, X_k1, whitening(C_b), whitening(C_f))
+
+
+def whitened_transfer_factor(
+    key: int, X_k: np.ndarray, X_k1: np.ndarray, W_b: np.ndarray, W_f: np.ndarray
+) -> gtsam.CustomFactor:
+    """:func:`transfer_factor` with the whitening matrices ``W^T W = C^-1`` (:func:`whitening`) given."""
+    return _custom_factor([key], gtsam.noiseModel.Unit.Create(6 * X_k.shape[0]), X_k, X_k1, W_b, W_f)
 
 
 def transfer_between_factor(

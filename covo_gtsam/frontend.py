@@ -227,11 +227,13 @@ class Features:
     Attributes:
         uv: (N, 2) float64 measured (distorted) pixel coordinates.
         descriptors: (N, 32) uint8 ORB descriptors.
+        octave: (N,) int pyramid level of each keypoint (0 = full resolution; zeros if unknown).
         words: (N, 4) uint64 view of ``descriptors`` used by :func:`match` (set automatically).
     """
 
     uv: np.ndarray
     descriptors: np.ndarray
+    octave: np.ndarray | None = None
     words: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -242,8 +244,12 @@ class Features:
         if d.ndim != 2 or d.shape[1] != DESCRIPTOR_BYTES or d.shape[0] != uv.shape[0]:
             raise InputError(
                 f"features need descriptors (N, {DESCRIPTOR_BYTES}) for uv (N, 2); got {d.shape} and {uv.shape}")
+        octave = np.zeros(uv.shape[0], np.int32) if self.octave is None else np.asarray(self.octave, np.int32).reshape(-1)
+        if octave.shape[0] != uv.shape[0]:
+            raise InputError(f"features need one octave per keypoint; got {octave.shape[0]} for {uv.shape[0]}")
         self.uv = uv
         self.descriptors = d
+        self.octave = octave
         self.words = d.view(np.uint64)
 
     def __len__(self) -> int:
@@ -251,7 +257,7 @@ class Features:
 
     def subset(self, index: np.ndarray) -> "Features":
         """Features at ``index`` (integer indices or boolean mask)."""
-        return Features(self.uv[index], self.descriptors[index])
+        return Features(self.uv[index], self.descriptors[index], self.octave[index])
 
 
 def detect(grey: np.ndarray, orb: cv2.Feature2D, mask: np.ndarray | None = None) -> Features:
@@ -263,7 +269,8 @@ def detect(grey: np.ndarray, orb: cv2.Feature2D, mask: np.ndarray | None = None)
     if not keypoints or descriptors is None:
         return Features(np.zeros((0, 2)), np.zeros((0, DESCRIPTOR_BYTES), np.uint8))
     uv = cv2.KeyPoint_convert(keypoints).astype(float).reshape(-1, 2)
-    return Features(uv, descriptors)
+    octave = np.fromiter((k.octave for k in keypoints), np.int32, len(keypoints))
+    return Features(uv, descriptors, octave)
 
 
 def _as_words(f: Features | np.ndarray) -> np.ndarray:
@@ -485,6 +492,7 @@ def prepare_frame(
     noise_model: PointNoiseModel | None = None,
     cfg: FrontendConfig | None = None,
     use_surface_angle: bool = True,
+    pixel_sigma_by_level: bool = False,
 ) -> FrameData:
     """Features, registered depth, 3D points and their covariances of one frame.
 
@@ -497,6 +505,8 @@ def prepare_frame(
         cfg: front-end configuration (defaults if None); its depth range is applied.
         use_surface_angle: compute the surface angle from the depth image for the depth noise;
             otherwise theta = 0.
+        pixel_sigma_by_level: scale each keypoint's pixel noise by ``cfg.scale_factor ** octave``
+            (its ORB pyramid level); otherwise every keypoint has the model's pixel noise.
     """
     cfg = cfg or FrontendConfig()
     noise_model = noise_model or PointNoiseModel()
@@ -523,7 +533,8 @@ def prepare_frame(
     theta = np.zeros(n)
     if vi.shape[0]:
         points[vi] = camera.backproject(uv_u, z_v)
-        covs[vi] = noise_model.point_covariances(camera, uv_u, z_v, theta_v)
+        scale = cfg.scale_factor ** feats.octave[vi] if pixel_sigma_by_level else 1.0
+        covs[vi] = noise_model.point_covariances(camera, uv_u, z_v, theta_v, scale)
         uv_und[vi] = uv_u
         theta[vi] = theta_v
     return FrameData(

@@ -88,12 +88,20 @@ class PointNoiseModel:
     depth: DepthModel = KinectAxialNoise()
     lateral: KinectLateralNoise | None = None
 
-    def uvz_covariances(self, z: np.ndarray, theta: np.ndarray | float = 0.0) -> np.ndarray:
-        """Diagonal ``Q_uvz`` (N, 3, 3) of (4.10): pixel variances (px^2) and depth variance (m^2)."""
+    def uvz_covariances(
+        self, z: np.ndarray, theta: np.ndarray | float = 0.0, pixel_scale: np.ndarray | float = 1.0
+    ) -> np.ndarray:
+        """Diagonal ``Q_uvz`` (N, 3, 3) of (4.10): pixel variances (px^2) and depth variance (m^2).
+
+        ``pixel_scale`` multiplies the pixel standard deviations per point, e.g. the ORB pyramid
+        scale ``scale_factor ** octave`` of each keypoint (a keypoint found on level L is
+        localised to about ``scale_factor ** L`` full-resolution pixels).
+        """
         z = np.asarray(z, dtype=float)
         n = z.shape[0]
-        var_u = np.full(n, self.pixel.sigma_u**2)
-        var_v = np.full(n, self.pixel.sigma_v**2)
+        s2 = np.broadcast_to(np.asarray(pixel_scale, dtype=float) ** 2, (n,))
+        var_u = self.pixel.sigma_u**2 * s2
+        var_v = self.pixel.sigma_v**2 * s2
         if self.lateral is not None:
             lat = np.broadcast_to(self.lateral.sigma(theta), (n,)) ** 2
             var_u = var_u + lat
@@ -105,11 +113,15 @@ class PointNoiseModel:
         return Q
 
     def point_covariances(
-        self, camera: Camera, uv: np.ndarray, z: np.ndarray, theta: np.ndarray | float = 0.0
+        self, camera: Camera, uv: np.ndarray, z: np.ndarray, theta: np.ndarray | float = 0.0,
+        pixel_scale: np.ndarray | float = 1.0,
     ) -> np.ndarray:
-        """Camera-frame covariances ``Q_xyz`` (N, 3, 3) in m^2 of points at undistorted ``uv``, depth ``z``."""
+        """Camera-frame covariances ``Q_xyz`` (N, 3, 3) in m^2 of points at undistorted ``uv``, depth ``z``.
+
+        ``pixel_scale``: per-point factor on the pixel standard deviations (see :meth:`uvz_covariances`).
+        """
         J = camera.backprojection_jacobian(uv, z)
-        return propagate(J, self.uvz_covariances(z, theta))
+        return propagate(J, self.uvz_covariances(z, theta, pixel_scale))
 
 
 def propagate(J: np.ndarray, Q: np.ndarray) -> np.ndarray:

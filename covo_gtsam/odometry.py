@@ -50,6 +50,7 @@ class OdometryConfig:
 
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     pixel_sigma: float = 2.0
+    pixel_sigma_by_level: bool = False
     use_surface_angle: bool = True
     weighting: str = "consistent"
     scale: float = 1.0
@@ -161,6 +162,7 @@ class VisualOdometry:
         return prepare_frame(
             to_grey(image), depth, self.camera, orb, self._noise, self.config.frontend,
             use_surface_angle=self.config.use_surface_angle,
+            pixel_sigma_by_level=self.config.pixel_sigma_by_level,
         )
 
     # -- the entry point ---------------------------------------------------------------------

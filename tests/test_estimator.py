@@ -8,7 +8,8 @@ import pytest
 
 from covo_gtsam.covariance import compose_covariance, tangent_to_tq, tq_to_tangent, tangent_to_ros, ros_to_tangent
 from covo_gtsam.errors import CovoError, DegenerateGeometryError, EstimationError, InputError, InsufficientPairsError
-from covo_gtsam.estimator import estimate_relative_pose
+from covo_gtsam.estimator import POSE_KEY, estimate_relative_pose
+from covo_gtsam.factors import transfer_factor
 from covo_gtsam.geometry import matrix_to_quat
 from covo_gtsam.noise import PixelNoise, PointNoiseModel
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements
@@ -184,3 +185,19 @@ def test_robust_kernels_resist_gross_outliers_and_variance_factor():
     np.testing.assert_allclose(vf.covariance, plain.covariance * plain.chi2_per_dof, rtol=1e-9)
     with pytest.raises(InputError, match="robust"):
         estimate_relative_pose(X0, X1, Q0, Q1, robust="tukey")
+
+
+def test_marginal_covariance_equals_gtsam_marginals_of_the_nonlinear_graph():
+    rng = np.random.default_rng(11)
+    X_k1 = rng.uniform([-1, -1, 1], [1, 1, 3], (80, 3))
+    T = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.05, -0.02, 0.1), np.array([0.1, 0.0, -0.05]))
+    X_k = X_k1 @ T.rotation().matrix().T + T.translation()
+    Q = np.tile(np.diag([1e-5, 2e-5, 5e-5]), (80, 1, 1))
+    X_k = X_k + rng.standard_normal(X_k.shape) * 3e-3
+    res = estimate_relative_pose(X_k, X_k1, Q, Q)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(transfer_factor(POSE_KEY, X_k, X_k1, *res.residual_covariances))
+    values = gtsam.Values()
+    values.insert(POSE_KEY, res.pose)
+    expected = gtsam.Marginals(graph, values).marginalCovariance(POSE_KEY)
+    np.testing.assert_allclose(res.covariance, expected, rtol=1e-9)

@@ -248,6 +248,30 @@ def test_prepare_frame_points_and_covariances(frames, camera):
     np.testing.assert_array_equal(f.valid_features.descriptors, f.features.descriptors[v])
 
 
+def test_keypoint_octaves_and_per_level_pixel_noise(seq, camera):
+    cfg = fe.FrontendConfig()
+    orb = fe.make_orb(cfg)
+    rgb, depth = seq.paths(0)
+    grey, d = fe.load_grey(rgb), fe.load_depth(depth)
+    keypoints = orb.detect(grey, None)
+    flat = fe.prepare_frame(grey, d, camera, orb, PointNoiseModel(), cfg)
+    levels = fe.prepare_frame(grey, d, camera, orb, PointNoiseModel(), cfg, pixel_sigma_by_level=True)
+    octave = flat.features.octave
+    assert octave.shape == (flat.num_features,) and octave.min() == 0 and 0 < octave.max() < cfg.n_levels
+    assert sorted(octave.tolist()) == sorted(k.octave for k in keypoints)
+    np.testing.assert_array_equal(flat.valid_features.octave, octave[flat.valid])
+    v0 = flat.valid & (octave == 0)
+    np.testing.assert_allclose(levels.covariances[v0], flat.covariances[v0])
+    # on level L the pixel part of Q_uvz grows by scale_factor^(2L); the depth part does not
+    i = int(np.flatnonzero(flat.valid & (octave == 3))[0])
+    J = camera.backprojection_jacobian(flat.uv_undistorted[i:i + 1], flat.depths[i:i + 1])[0]
+    Jinv = np.linalg.inv(J)
+    q_flat = Jinv @ flat.covariances[i] @ Jinv.T
+    q_level = Jinv @ levels.covariances[i] @ Jinv.T
+    np.testing.assert_allclose(q_level[:2, :2], q_flat[:2, :2] * cfg.scale_factor ** 6, rtol=1e-9, atol=1e-9)
+    assert q_level[2, 2] == pytest.approx(q_flat[2, 2], rel=1e-9)
+
+
 def test_prepare_frame_validates_inputs(camera):
     orb = fe.make_orb()
     grey = np.zeros((480, 640), np.uint8)
