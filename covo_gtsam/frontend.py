@@ -668,6 +668,7 @@ def ransac_rigid3d(
     seed: int | np.random.Generator = 0,
     refits: int = 10,
     confidence: float = RANSAC_CONFIDENCE,
+    prior: np.ndarray | None = None,
 ) -> RansacResult:
     """RANSAC of a rigid transform ``X_ref ≈ R X_cur + t`` over 3-point samples.
 
@@ -691,7 +692,10 @@ def ransac_rigid3d(
     seed (0.97 cm / 0.37 deg from ground truth for each of 20 seeds; refitting once: up to
     1.7 cm / 0.52 deg).
 
-    Fewer than 3 pairs, or no consistent sample: identity and no inliers.
+    ``prior`` (4x4 ``T_ref,cur``, e.g. a constant-velocity prediction) is scored as one more
+    hypothesis before the samples; when it is good, its inlier ratio ends the sampling early.
+
+    Fewer than 3 pairs, or no consistent sample (and no prior with 3 inliers): identity and no inliers.
     """
     X_ref = np.asarray(X_ref, dtype=float)
     X_cur = np.asarray(X_cur, dtype=float)
@@ -712,21 +716,32 @@ def ransac_rigid3d(
     Qb9 = Q_cur.reshape(n, 9)
     R_all, t_all, count_all, cost_all = [], [], [], []
     best_count = 0
+
+    def score(R_h: np.ndarray, t_h: np.ndarray) -> None:
+        nonlocal best_count
+        d2 = _score_hypotheses(R_h, t_h, X_ref, X_cur, Qa6, Qb9)
+        inl = d2 < chi2
+        R_all.append(R_h)
+        t_all.append(t_h)
+        count_all.append(inl.sum(axis=1))
+        cost_all.append(np.where(inl, d2, 0.0).sum(axis=1))
+        best_count = max(best_count, int(count_all[-1].max()))
+
+    if prior is not None:
+        prior = np.asarray(prior, dtype=float)
+        if prior.shape != (4, 4) or not np.all(np.isfinite(prior)):
+            raise InputError(f"the RANSAC prior must be a finite 4x4 pose, got shape {prior.shape}")
+        score(prior[None, :3, :3], prior[None, :3, 3])
+        if best_count < 3:
+            best_count = 0
     chunk = max(1, min(RANSAC_BATCH, RANSAC_CHUNK // n))
     for s in range(0, drawn.shape[0], chunk):
         samples = drawn[s:s + chunk][consistent[s:s + chunk]]
         if samples.shape[0]:
-            R_h, t_h = rigid_fit(X_ref[samples], X_cur[samples])
-            d2 = _score_hypotheses(R_h, t_h, X_ref, X_cur, Qa6, Qb9)
-            inl = d2 < chi2
-            R_all.append(R_h)
-            t_all.append(t_h)
-            count_all.append(inl.sum(axis=1))
-            cost_all.append(np.where(inl, d2, 0.0).sum(axis=1))
-            best_count = max(best_count, int(count_all[-1].max()))
+            score(*rigid_fit(X_ref[samples], X_cur[samples]))
         if s + chunk >= required_samples(best_count / n, confidence):
             break
-    if not R_all:  # no 3 pairs agree with any rigid motion
+    if not R_all or best_count < 3:  # no 3 pairs agree with any rigid motion
         return RansacResult(np.eye(3), np.zeros(3), np.zeros(n, bool), 0)
     R_h, t_h = np.concatenate(R_all), np.concatenate(t_all)
     counts, costs = np.concatenate(count_all), np.concatenate(cost_all)
@@ -783,8 +798,8 @@ class PointPairs:
             outlier rejection.
         num_inliers: pairs kept by outlier rejection (= N).
         method: the outlier rejection used.
-        T_init: 4x4 ``T_ref,cur`` of the rigid3d RANSAC refit (None for other methods); a good
-            ``initial`` for :func:`covo_gtsam.estimator.estimate_relative_pose`.
+        T_init: 4x4 ``T_ref,cur`` of the rigid3d RANSAC refit (the prior, if any, for other
+            methods); a good ``initial`` for :func:`covo_gtsam.estimator.estimate_relative_pose`.
     """
 
     X_ref: np.ndarray
@@ -805,11 +820,15 @@ class PointPairs:
         return int(self.X_ref.shape[0])
 
 
-def associate_frames(ref: FrameData, cur: FrameData, cfg: FrontendConfig | None = None) -> PointPairs:
+def associate_frames(
+    ref: FrameData, cur: FrameData, cfg: FrontendConfig | None = None, prior: np.ndarray | None = None
+) -> PointPairs:
     """Point pairs of a reference frame k and the current frame k+1.
 
     Only keypoints with valid depth are matched (cross-checked Hamming, best ``keep_ratio``,
     optional ``max_hamming``); outliers are then rejected by ``cfg.outlier_rejection``.
+    ``prior`` (4x4 predicted ``T_ref,cur``, optional) is an extra rigid-RANSAC hypothesis and,
+    with the other outlier rejections, the initial guess ``T_init`` of the pose.
     """
     cfg = cfg or FrontendConfig()
     ia, ib, dist = match(ref.valid_features, cur.valid_features, cfg.keep_ratio, cfg.max_hamming,
@@ -821,15 +840,18 @@ def associate_frames(ref: FrameData, cur: FrameData, cfg: FrontendConfig | None 
     Q_ref, Q_cur = ref.covariances[idx_ref], cur.covariances[idx_cur]
     T_init = None
     if cfg.outlier_rejection == "rigid3d":
-        res = ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, cfg.ransac_iterations, cfg.ransac_chi2, cfg.seed)
+        res = ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, cfg.ransac_iterations, cfg.ransac_chi2, cfg.seed,
+                             prior=prior)
         keep = res.inliers
         T_init = res.T if res.num_inliers >= 3 else None
     elif cfg.outlier_rejection == "homography":
         # Undistorted pixels: a homography only models undistorted image motion.
         keep = ransac_homography(ref.uv_undistorted[idx_ref], cur.uv_undistorted[idx_cur], cfg.ransac_px,
                                  cfg.ransac_iterations)
+        T_init = prior
     else:
         keep = np.ones(num_matches, bool)
+        T_init = prior
     return PointPairs(
         X_ref=X_ref[keep], X_cur=X_cur[keep], Q_ref=Q_ref[keep], Q_cur=Q_cur[keep],
         uv_ref=ref.features.uv[idx_ref[keep]], uv_cur=cur.features.uv[idx_cur[keep]],

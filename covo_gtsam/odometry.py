@@ -19,9 +19,14 @@ import numpy as np
 from .camera import Camera
 from .covariance import compose_covariance
 from .errors import ConfigError, CovoError, EstimationError, InputError
-from .estimator import RelativePoseResult, estimate_relative_pose
+from .estimator import ROBUST_KERNELS, RelativePoseResult, estimate_relative_pose
+from .factors import WEIGHTINGS
 from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
+
+
+#: Choices of ``OdometryConfig.motion_model``.
+MOTION_MODELS = ("constant_velocity", "none")
 
 
 @dataclass(frozen=True)
@@ -33,6 +38,10 @@ class OdometryConfig:
     of a frame pair (depth-image and synchronisation errors of the Kinect v1 that the per-point
     model cannot see); they are added to each relative covariance. Defaults are calibrated once
     for the sensor on the first half of the shared fr1_rpy frames, see docs/consistency.md.
+
+    ``motion_model``: ``"constant_velocity"`` predicts ``T_ref,cur`` from the motion between the
+    last two tracked frames (scaled by the time elapsed); the prediction is an extra RANSAC
+    hypothesis and, without RANSAC, the initial guess. ``"none"``: no prediction.
 
     ``robust`` (``"huber"``/``"cauchy"``) and ``variance_factor`` select the estimator's robust
     re-weighting and a-posteriori variance scaling (see :func:`estimate_relative_pose`).
@@ -57,12 +66,26 @@ class OdometryConfig:
     depth_scale: float = 5000.0
     keyframes: bool = False
     keyframe_ratio: float = 0.5
+    motion_model: str = "constant_velocity"
     robust: str | None = None
     variance_factor: bool = False
     max_rotation_deg: float = 30.0
     max_translation_m: float = 0.5
     frame_sigma_rot_deg: float = 0.30
     frame_sigma_trans_m: float = 0.0041
+
+    def __post_init__(self) -> None:
+        if self.robust in ("", "none"):  # TOML has no null
+            object.__setattr__(self, "robust", None)
+        choices = {"weighting": WEIGHTINGS, "robust": ROBUST_KERNELS, "motion_model": MOTION_MODELS}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"unknown {name} {getattr(self, name)!r}; choose one of {allowed}")
+        positive = ("pixel_sigma", "scale", "depth_scale", "keyframe_ratio", "max_rotation_deg", "max_translation_m")
+        for name in positive + ("frame_sigma_rot_deg", "frame_sigma_trans_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0 and (value > 0 or name not in positive)):
+                raise ConfigError(f"{name} must be a {'positive' if name in positive else 'non-negative'} number, got {value!r}")
 
     def frame_noise(self) -> np.ndarray:
         """6x6 frame-level covariance added to every relative pose (tangent [omega, v])."""
@@ -137,6 +160,7 @@ class VisualOdometry:
         self._ref_step: OdometryStep | None = None
         self._last: tuple[FrameData, OdometryStep] | None = None  # the last tracked frame
         self._keyframe_min_pairs = 0
+        self._velocity: tuple[gtsam.Pose3, float] | None = None  # (T_prev,last, dt) of the last two tracked frames
         self.steps: list[OdometryStep] = []
 
     # -- front end -------------------------------------------------------------------------
@@ -194,6 +218,8 @@ class VisualOdometry:
             if retry.tracked or not step.tracked:
                 step = retry
         if step.tracked:
+            if last is not None and step.timestamp > last[1].timestamp:
+                self._velocity = (last[1].pose.between(step.pose), step.timestamp - last[1].timestamp)
             self._last = (frame, step)
             if not self.config.keyframes:
                 self._set_keyframe(frame, step)
@@ -203,9 +229,27 @@ class VisualOdometry:
         self._ref, self._ref_step = frame, step
         self._keyframe_min_pairs = 0  # set from the first pair matched to this keyframe
 
+    def predict(self, ref_step: OdometryStep, timestamp: float) -> gtsam.Pose3 | None:
+        """Constant-velocity prediction of ``T_ref,cur`` for a frame at ``timestamp`` (None without one).
+
+        The motion ``T_prev,last`` between the last two tracked frames, taken over their time
+        difference ``dt``, is extrapolated as ``Exp(s Log(T_prev,last))`` with
+        ``s = (timestamp - t_last) / dt`` (at most 5) and composed with ``T_ref,last``.
+        """
+        if self.config.motion_model != "constant_velocity" or self._velocity is None or self._last is None:
+            return None
+        last_step = self._last[1]
+        motion, dt = self._velocity
+        s = min((timestamp - last_step.timestamp) / dt, 5.0)
+        if not s > 0:
+            return None
+        ahead = gtsam.Pose3.Expmap(s * gtsam.Pose3.Logmap(motion))
+        return ref_step.pose.between(last_step.pose).compose(ahead)
+
     def _track(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, timestamp: float) -> OdometryStep:
         """Relative pose of ``frame`` to ``ref`` (a lost step if it cannot be estimated)."""
-        pairs = associate_frames(ref, frame, self.config.frontend)
+        guess = self.predict(ref_step, timestamp)
+        pairs = associate_frames(ref, frame, self.config.frontend, None if guess is None else guess.matrix())
         step = OdometryStep(timestamp, "lost", ref_timestamp=ref_step.timestamp,
                             num_matches=pairs.num_matches, num_pairs=pairs.num_inliers)
         min_pairs = self.config.frontend.min_pairs

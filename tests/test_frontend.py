@@ -326,6 +326,24 @@ def test_rigid3d_ransac_recovers_transform_and_flags_outliers():
     np.testing.assert_allclose(res.T, make_pose(res.R, res.t))
 
 
+def test_rigid3d_ransac_prior_hypothesis():
+    X_ref, X_cur, Q_ref, Q_cur, R, t, outlier = _synthetic_pairs(outlier_frac=0.3, seed=2)
+    plain = fe.ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, seed=0)
+    # a good prior is scored first: the same inliers, and its inlier ratio ends sampling early
+    good = fe.ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, seed=0, prior=make_pose(R, t))
+    np.testing.assert_array_equal(good.inliers, plain.inliers)
+    assert good.hypotheses <= plain.hypotheses
+    # a wrong prior loses against the samples
+    wrong = fe.ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, seed=0, prior=make_pose(np.eye(3), t + 1.0))
+    np.testing.assert_array_equal(wrong.inliers, plain.inliers)
+    # with no consistent sample left, a good prior alone still gives the motion
+    solo = fe.ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, iterations=0, prior=make_pose(R, t))
+    assert np.count_nonzero(solo.inliers & ~outlier) >= 0.95 * np.count_nonzero(~outlier)
+    assert fe.ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, iterations=0).num_inliers == 0
+    with pytest.raises(InputError):
+        fe.ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, prior=np.eye(3))
+
+
 def test_rigid3d_ransac_is_deterministic():
     X_ref, X_cur, Q_ref, Q_cur, *_ = _synthetic_pairs(outlier_frac=0.45, seed=5)
     a = fe.ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, seed=7)

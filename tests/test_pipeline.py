@@ -91,3 +91,37 @@ def test_analyze_noise_on_sample(sample_dir, tmp_path, capsys):
     assert 0.3 < s["depth_residual_normalised"]["robust_sigma"] < 5
     assert (out / "plots" / "noise.png").is_file()
     assert "frame pairs" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("keyframes", [False, True])
+def test_constant_velocity_prediction(sample_dir, keyframes):
+    import gtsam
+
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.frontend import load_depth, load_grey
+    from covo_gtsam.odometry import OdometryConfig, VisualOdometry
+
+    seq = TumSequence(sample_dir)
+    vo = VisualOdometry(seq.camera, OdometryConfig(keyframes=keyframes))
+    err_guess, err_still = [], []
+    for i in range(16):
+        ref_step = vo._ref_step
+        guess = None if ref_step is None else vo.predict(ref_step, seq.timestamps[i])
+        if i >= 2:  # two tracked frames give a velocity
+            s_prev, s_last = vo.steps[-2], vo.steps[-1]
+            scale = (seq.timestamps[i] - s_last.timestamp) / (s_last.timestamp - s_prev.timestamp)
+            ahead = gtsam.Pose3.Expmap(scale * gtsam.Pose3.Logmap(s_prev.pose.between(s_last.pose)))
+            expected = ref_step.pose.between(s_last.pose).compose(ahead)
+            np.testing.assert_allclose(guess.matrix(), expected.matrix(), atol=1e-12)
+        step = vo.register_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i])
+        assert step.tracked
+        if guess is not None and step.ref_timestamp == ref_step.timestamp:
+            still = ref_step.pose.between(vo.steps[-2].pose)
+            err_guess.append(np.linalg.norm(gtsam.Rot3.Logmap(guess.rotation().between(step.relative.rotation()))))
+            err_still.append(np.linalg.norm(gtsam.Rot3.Logmap(still.rotation().between(step.relative.rotation()))))
+    if not keyframes:
+        # the camera turns smoothly: predicted rotations are closer to the estimates than "no motion"
+        assert len(err_guess) == 14 and np.median(err_guess) < 0.5 * np.median(err_still)
+    assert VisualOdometry(seq.camera, OdometryConfig(motion_model="none")).predict(vo._ref_step, 0.0) is None
+    with pytest.raises(ConfigError):
+        VisualOdometry(seq.camera, OdometryConfig(motion_model="fast"))

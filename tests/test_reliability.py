@@ -87,7 +87,11 @@ def test_cli_listed_file_missing(small_seq, tmp_path):
 
 
 @pytest.mark.parametrize("content,needle", [("{not json", "not a valid JSON"), ('{"pixel_sigmaa": 2}', "unknown"),
-                                            (None, "cannot read")])
+                                            (None, "cannot read"), ('{"weighting": "fancy"}', "unknown weighting"),
+                                            ('{"robust": "tukey"}', "unknown robust"),
+                                            ('{"motion_model": "fast"}', "unknown motion_model"),
+                                            ('{"pixel_sigma": -1}', "pixel_sigma must be a positive"),
+                                            ('{"frame_sigma_trans_m": "x"}', "frame_sigma_trans_m must be")])
 def test_cli_bad_config(small_seq, tmp_path, content, needle):
     cfg = tmp_path / "cfg.json"
     if content is not None:
