@@ -10,7 +10,6 @@ and for the whole sequence to show that memory stays flat.
 
 from __future__ import annotations
 
-import argparse
 import resource
 import subprocess
 import sys
@@ -21,6 +20,7 @@ from collections import defaultdict
 import gtsam
 import numpy as np
 
+from _common import sequence_from_command_line
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.estimator import estimate_relative_pose
 from covo_gtsam.frontend import (
@@ -85,12 +85,7 @@ def whole_process(seq_dir: str, n: int | None) -> tuple[float, float]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("sequence")
-    ap.add_argument("--max-frames", type=int, default=None)
-    args = ap.parse_args()
-    seq = TumSequence(args.sequence)
-    n = len(seq) if args.max_frames is None else min(args.max_frames, len(seq))
+    seq, n = sequence_from_command_line(__doc__)
     times = stage_times(seq, n)
     print(f"per-stage time per frame on {seq.name} ({n} frames), ms")
     print(f"{'stage':<48} {'median':>7} {'p10':>7} {'p90':>7}")
@@ -100,8 +95,8 @@ def main() -> None:
           " decodes and prepares the next frames on worker threads)")
     # ru_maxrss of the children is a running maximum: the short run goes first
     small = min(60, n)
-    _, rss60 = whole_process(args.sequence, small)
-    wall, rss = whole_process(args.sequence, n)
+    _, rss60 = whole_process(str(seq.path), small)
+    wall, rss = whole_process(str(seq.path), n)
     print(f"\nwhole process `covo run --no-plots`: {n} frames in {wall:.2f} s = {n / wall:.1f} frames/s "
           f"(start-up and decoding included)")
     print(f"peak RSS: {rss60:.0f} MB for {small} frames, {rss:.0f} MB for {n} frames")

@@ -10,13 +10,12 @@ rotational RPE over 1 and 30 frames against the ground truth, with ratios to cov
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import cv2
 import numpy as np
 
-from covo_gtsam.datasets.tum import TumSequence
+from _common import sequence_from_command_line
 from covo_gtsam.frontend import load_depth, load_grey
 from covo_gtsam.metrics import rpe
 from covo_gtsam.odometry import VisualOdometry
@@ -80,12 +79,7 @@ def run_opencv(seq, frames):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("sequence")
-    ap.add_argument("--max-frames", type=int, default=None)
-    args = ap.parse_args()
-    seq = TumSequence(args.sequence)
-    n = len(seq) if args.max_frames is None else min(args.max_frames, len(seq))
+    seq, n = sequence_from_command_line(__doc__)
     frames = []
     for i in range(n):
         colour = cv2.imread(seq.rgb_paths[i])

@@ -100,7 +100,7 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
 
 def plot_noise(summary: dict, out_dir: Path) -> list[Path]:
     """Figures of 5.3.1-5.3.3: error histogram, per-pair sigma over time, box plots; depth residuals."""
-    from .plots import _plt
+    from .plots import _plt, save_figure
 
     plt = _plt()
     if plt is None:
@@ -135,8 +135,5 @@ def plot_noise(summary: dict, out_dir: Path) -> list[Path]:
     axes[1, 1].legend(fontsize=8)
     for ax in axes.ravel():
         ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    written.append(out_dir / "noise.png")
-    fig.savefig(written[-1], dpi=110)
-    plt.close(fig)
+    written.append(save_figure(fig, out_dir / "noise.png"))
     return written

@@ -38,6 +38,24 @@ def nees_histogram(ax, nees: np.ndarray, title: str, dof: int = 3) -> None:
     ax.legend(fontsize=8)
 
 
+def save_figure(fig, path: Path) -> Path:
+    """Lay out, write (PNG, 110 dpi) and close a figure; return its path."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return path
+
+
+def plane_axes(ax, a: int, b: int, title: str, legend_size: int = 8) -> None:
+    """Label a top view on world axes ``a``, ``b`` (0..2 = x, y, z in metres), equal scale, grid, legend."""
+    ax.set_xlabel(f"{'xyz'[a]} [m] (first camera frame)")
+    ax.set_ylabel(f"{'xyz'[b]} [m]")
+    ax.set_title(title)
+    ax.axis("equal")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=legend_size)
+
+
 def ellipse_xy(ax, center: np.ndarray, cov2: np.ndarray, nsigma: float = 3.0, **kw) -> None:
     """Draw the ``nsigma`` ellipse of a 2x2 covariance around ``center`` on a matplotlib axis."""
     vals, vecs = np.linalg.eigh(0.5 * (cov2 + cov2.T))
@@ -77,16 +95,8 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
             cov_w = R @ covs[k][3:, 3:] @ R.T  # translation block is body-frame; rotate to world
             ellipse_xy(ax, P[k, [i, j], 3], cov_w[np.ix_([i, j], [i, j])], color="tab:orange", lw=0.8)
         ax.plot([], [], color="tab:orange", lw=0.8, label="3$\\sigma$ (composed)")
-        ax.set_xlabel(f"{'xyz'[i]} [m] (first camera frame)")
-        ax.set_ylabel(f"{'xyz'[j]} [m]")
-        ax.set_title(f"trajectory, {names}")
-        ax.axis("equal")
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    written.append(out_dir / "trajectory.png")
-    fig.savefig(written[-1], dpi=110)
-    plt.close(fig)
+        plane_axes(ax, i, j, f"trajectory, {names}")
+    written.append(save_figure(fig, out_dir / "trajectory.png"))
 
     T_est, T_true, rel_covs = relative_ground_truth(steps, gt)
     if len(T_est):
@@ -94,10 +104,7 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
         nees_histogram(axes[0], nees_tr, "translation NEES per frame pair")
         nees_histogram(axes[1], nees_rot, "rotation NEES per frame pair")
-        fig.tight_layout()
-        written.append(out_dir / "nees.png")
-        fig.savefig(written[-1], dpi=110)
-        plt.close(fig)
+        written.append(save_figure(fig, out_dir / "nees.png"))
 
         gt_poses = np.array([gt[s.timestamp] for s in tracked if s.timestamp in gt])
         est_poses = np.array([s.pose.matrix() for s in tracked if s.timestamp in gt])
@@ -117,10 +124,7 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
             for ax in axes:
                 ax.grid(True, alpha=0.3)
             fig.suptitle(f"relative pose error, {metrics.get('sequence', '')}")
-            fig.tight_layout()
-            written.append(out_dir / "rpe.png")
-            fig.savefig(written[-1], dpi=110)
-            plt.close(fig)
+            written.append(save_figure(fig, out_dir / "rpe.png"))
     return written
 
 
@@ -137,10 +141,7 @@ def plot_simulation(result, out_dir: Path) -> list[Path]:
     nees_histogram(axes[1], result.nees_rotation, f"rotation NEES (ANEES {result.anees_rotation:.2f})")
     fig.suptitle(f"simulation, {result.config.weighting} weighting, scale {result.config.scale:g}, "
                  f"{result.config.pixel_sigma:g} px, {len(result.errors)} runs")
-    fig.tight_layout()
-    written.append(out_dir / "nees.png")
-    fig.savefig(written[-1], dpi=110)
-    plt.close(fig)
+    written.append(save_figure(fig, out_dir / "nees.png"))
 
     sig = np.sqrt(np.einsum("nii->ni", result.covariances))
     names = ["rx [deg]", "ry [deg]", "rz [deg]", "tx [cm]", "ty [cm]", "tz [cm]"]
@@ -162,8 +163,5 @@ def plot_simulation(result, out_dir: Path) -> list[Path]:
     for ax in axes[1]:
         ax.set_xlabel("run")
     fig.suptitle("errors of T_0,1 (GTSAM tangent, right perturbation) against predicted bounds")
-    fig.tight_layout()
-    written.append(out_dir / "errors_bounds.png")
-    fig.savefig(written[-1], dpi=110)
-    plt.close(fig)
+    written.append(save_figure(fig, out_dir / "errors_bounds.png"))
     return written

@@ -71,7 +71,7 @@ from covo_gtsam.graph import between_factors, step_keys, unit_between_factors
 from covo_gtsam.metrics import ate
 from covo_gtsam.odometry import OdometryConfig
 from covo_gtsam.pipeline import run_sequence
-from covo_gtsam.plots import ellipse_xy
+from covo_gtsam.plots import ellipse_xy, plane_axes, save_figure
 
 #: Constant odometry covariance of the ``unit`` variant: 0.01 rad and 0.01 m standard deviations.
 UNIT_SIGMA = 1e-2
@@ -188,7 +188,6 @@ def plot_results(out: Path, variants: dict, gt_rel: dict, vo_poses: dict, fixes:
     G = np.array([gt_rel[i][:3, 3] for i in indices])
     spread = G.max(axis=0) - G.min(axis=0)
     a, b = sorted(np.argsort(spread)[-2:])  # the two axes the camera moved most along
-    names = "xyz"
     written = []
     fig, axes = plt.subplots(1, len(variants), figsize=(6 * len(variants), 5.6), squeeze=False)
     every = max(1, len(indices) // 25)
@@ -207,16 +206,8 @@ def plot_results(out: Path, variants: dict, gt_rel: dict, vo_poses: dict, fixes:
         ax.plot([], [], color="tab:orange", lw=0.7, label="3$\\sigma$ (iSAM2 marginal)")
         F = np.array([fixes[i] for i in indices if i in fixes]).reshape(-1, 3)
         ax.plot(F[:, a], F[:, b], "r+", ms=9, mew=1.5, label="position fixes")
-        ax.set_title(f"{name}: ATE {v['ate_rmse'] * 100:.2f} cm, position ANEES {v['anees_position']:.2f}")
-        ax.set_xlabel(f"{names[a]} [m] (first camera frame)")
-        ax.set_ylabel(f"{names[b]} [m]")
-        ax.axis("equal")
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    written.append(out / "pose_graph_trajectories.png")
-    fig.savefig(written[-1], dpi=110)
-    plt.close(fig)
+        plane_axes(ax, a, b, f"{name}: ATE {v['ate_rmse'] * 100:.2f} cm, position ANEES {v['anees_position']:.2f}", 7)
+    written.append(save_figure(fig, out / "pose_graph_trajectories.png"))
 
     fig, axes = plt.subplots(len(variants), 1, figsize=(10, 2.6 * len(variants)), sharex=True, squeeze=False)
     for ax, (name, v) in zip(axes[:, 0], variants.items()):
@@ -230,10 +221,7 @@ def plot_results(out: Path, variants: dict, gt_rel: dict, vo_poses: dict, fixes:
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7, loc="upper left")
     axes[-1, 0].set_xlabel("frame (grey lines: position fixes)")
-    fig.tight_layout()
-    written.append(out / "pose_graph_errors.png")
-    fig.savefig(written[-1], dpi=110)
-    plt.close(fig)
+    written.append(save_figure(fig, out / "pose_graph_errors.png"))
     return written
 
 

@@ -10,7 +10,6 @@ quantile on the shared TUM sequences for each variant, next to the thesis's Tabl
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -20,7 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
-from covo_gtsam.evaluation import consistency_metrics, relative_ground_truth, ground_truth_lookup  # noqa: E402
+from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
 from covo_gtsam.odometry import OdometryConfig  # noqa: E402
 from covo_gtsam.pipeline import run_sequence  # noqa: E402
 from covo_gtsam.simulation import SimulationConfig, run_simulation  # noqa: E402

@@ -9,6 +9,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import gtsam
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
@@ -52,3 +54,18 @@ def fr1_desk_dir() -> Path:
 @pytest.fixture
 def sample_dir() -> Path:
     return SAMPLE_DIR
+
+
+@pytest.fixture
+def random_trajectory():
+    """``make(n, seed, step_sigma, t0)`` -> stamps (n,) s and poses (n, 4, 4): a seeded random walk
+    on SE(3) with steps ``Exp(N(0, step_sigma^2))`` (tangent ``[omega, v]``), frames 0.033 s apart."""
+
+    def make(n: int = 20, seed: int = 0, step_sigma=0.3, t0: float = 1305031229.528748):
+        rng = np.random.default_rng(seed)
+        poses = [gtsam.Pose3.Expmap(rng.normal(size=6)).matrix()]
+        for _ in range(n - 1):
+            poses.append(poses[-1] @ gtsam.Pose3.Expmap(rng.normal(scale=step_sigma, size=6)).matrix())
+        return t0 + 0.033 * np.arange(n), np.array(poses)
+
+    return make

@@ -24,21 +24,13 @@ from covo_gtsam.io import (
 )
 
 
-def random_trajectory(n=20, seed=0):
-    rng = np.random.default_rng(seed)
-    poses = [gtsam.Pose3.Expmap(rng.normal(size=6)).matrix()]
-    for _ in range(n - 1):
-        poses.append(poses[-1] @ gtsam.Pose3.Expmap(rng.normal(scale=0.3, size=6)).matrix())
-    return 1305031229.528748 + 0.033 * np.arange(n), np.array(poses)
-
-
 def random_covs(n, seed=0):
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(n, 6, 6)) * np.array([1e-3] * 3 + [1e-2] * 3)[:, None]
     return A @ np.swapaxes(A, 1, 2) + 1e-9 * np.eye(6)
 
 
-def test_tum_round_trip_and_format(tmp_path):
+def test_tum_round_trip_and_format(tmp_path, random_trajectory):
     stamps, poses = random_trajectory()
     path = tmp_path / "traj.txt"
     write_tum_trajectory(path, stamps, poses)
@@ -50,7 +42,7 @@ def test_tum_round_trip_and_format(tmp_path):
     np.testing.assert_allclose(p2, poses, atol=1e-8)
 
 
-def test_trajectory_writer_matches_bulk_writer(tmp_path):
+def test_trajectory_writer_matches_bulk_writer(tmp_path, random_trajectory):
     stamps, poses = random_trajectory(5)
     write_tum_trajectory(tmp_path / "a.txt", stamps, poses)
     with TrajectoryWriter(tmp_path / "b.txt") as w:
@@ -59,7 +51,7 @@ def test_trajectory_writer_matches_bulk_writer(tmp_path):
     assert (tmp_path / "a.txt").read_text() == (tmp_path / "b.txt").read_text()
 
 
-def test_evo_reads_written_trajectory(tmp_path):
+def test_evo_reads_written_trajectory(tmp_path, random_trajectory):
     from evo.tools import file_interface
 
     stamps, poses = random_trajectory()
@@ -69,7 +61,7 @@ def test_evo_reads_written_trajectory(tmp_path):
     np.testing.assert_allclose(np.array(traj.poses_se3), poses, atol=1e-8)
 
 
-def test_relative_round_trip(tmp_path):
+def test_relative_round_trip(tmp_path, random_trajectory):
     stamps, poses = random_trajectory()
     rel = invert_pose(poses[:-1]) @ poses[1:]
     covs = random_covs(len(rel))
@@ -101,7 +93,7 @@ def test_relative_header_and_line_functions():
         format_relative_line(0.0, 1.0, T, np.eye(3))
 
 
-def test_interrupted_writers_leave_valid_files(tmp_path):
+def test_interrupted_writers_leave_valid_files(tmp_path, random_trajectory):
     stamps, poses = random_trajectory(6)
     covs = random_covs(5)
     with pytest.raises(RuntimeError):

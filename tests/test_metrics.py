@@ -24,13 +24,8 @@ from covo_gtsam.metrics import (
 )
 
 
-def random_trajectory(n=90, seed=0):
-    rng = np.random.default_rng(seed)
-    poses = [gtsam.Pose3.Expmap(rng.normal(size=6)).matrix()]
-    for _ in range(n - 1):
-        step = gtsam.Pose3.Expmap(rng.normal(scale=[0.02, 0.02, 0.02, 0.03, 0.03, 0.03]))
-        poses.append(poses[-1] @ step.matrix())
-    return 1000.0 + 0.033 * np.arange(n), np.array(poses)
+#: random-walk step of the synthetic trajectories (rad, m)
+STEP = [0.02, 0.02, 0.02, 0.03, 0.03, 0.03]
 
 
 def perturb(poses, seed=1, scale=0.01):
@@ -78,8 +73,8 @@ def check_against_evo(gt, est, stamps):
     assert a["n"] == len(gt)
 
 
-def test_rpe_ate_against_evo_synthetic():
-    stamps, gt = random_trajectory()
+def test_rpe_ate_against_evo_synthetic(random_trajectory):
+    stamps, gt = random_trajectory(90, step_sigma=STEP, t0=1000.0)
     check_against_evo(gt, perturb(gt), stamps)
 
 
@@ -89,7 +84,7 @@ def test_rpe_ate_against_evo_fr1_rpy_groundtruth(fr1_rpy_dir):
     check_against_evo(gt, perturb(gt, scale=0.005), seq.timestamps[seq.gt_valid])
 
 
-def test_rpe_hand_example_and_zero_cases():
+def test_rpe_hand_example_and_zero_cases(random_trajectory):
     gt = np.array([make_pose(np.eye(3), [x, 0, 0]) for x in (0.0, 1.0, 2.0)])
     est = gt.copy()
     est[2, :3, 3] = [2.0, 0.3, 0.4]  # second step off by 0.5 m
@@ -99,7 +94,7 @@ def test_rpe_hand_example_and_zero_cases():
     r = rpe(gt, est, 1)
     assert r["trans_rmse"] == pytest.approx(np.sqrt(0.125)) and r["trans_median"] == pytest.approx(0.25)
     # a rigidly moved copy has zero RPE and zero ATE
-    stamps, P = random_trajectory(30)
+    stamps, P = random_trajectory(30, step_sigma=STEP, t0=1000.0)
     X = gtsam.Pose3.Expmap(np.array([1.0, 2.0, -0.5, 3.0, 4.0, 5.0])).matrix()
     assert rpe(P, X @ P, 5)["trans_rmse"] < 1e-9
     assert ate(P, X @ P)["rmse"] < 1e-9

@@ -9,7 +9,6 @@ import pytest
 
 from covo_gtsam.cli import main
 from covo_gtsam.datasets.tum import TumSequence
-from covo_gtsam.geometry import invert_pose
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
 from covo_gtsam.metrics import rpe
 
