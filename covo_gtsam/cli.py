@@ -153,6 +153,13 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
     return 0
 
 
+def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT") -> None:
+    """``--out`` (required), ``--no-plots`` and ``--quiet``, common to every command."""
+    parser.add_argument("--out", required=True, metavar=metavar, help="results folder (created if missing)")
+    parser.add_argument("--no-plots", action="store_true", help="do not write plots/")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .factors import WEIGHTINGS
 
@@ -175,15 +182,13 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     run.add_argument("sequence", metavar="SEQ_DIR", help="TUM RGB-D sequence folder")
-    run.add_argument("--out", required=True, metavar="OUT", help="results folder (created if missing)")
     run.add_argument("--camera", choices=["fr1", "fr2", "fr3"],
                      help="camera preset (default: guessed from the folder name, e.g. 'freiburg1' -> fr1)")
     run.add_argument("--max-frames", type=_positive_int, metavar="N", help="process only the first N frames")
     run.add_argument("--config", metavar="FILE", help="TOML or JSON settings (see README: configuration)")
     run.add_argument("--weighting", choices=WEIGHTINGS, help="residual weighting (default: consistent)")
     run.add_argument("--scale", type=_positive_float, metavar="PHI", help="covariance scale phi (default 1)")
-    run.add_argument("--no-plots", action="store_true", help="do not write plots/")
-    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    _output_arguments(run)
     run.set_defaults(func=cmd_run)
 
     sim = sub.add_parser(
@@ -206,9 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--points", type=_positive_int, default=500, metavar="N", help="points per run (default 500)")
     sim.add_argument("--min-depth", type=_positive_float, default=0.5, metavar="M", help="nearest depth (default 0.5 m)")
     sim.add_argument("--max-depth", type=_positive_float, default=5.0, metavar="M", help="farthest depth (default 5 m)")
-    sim.add_argument("--out", required=True, metavar="DIR", help="results folder (created if missing)")
-    sim.add_argument("--no-plots", action="store_true", help="do not write plots/")
-    sim.add_argument("--quiet", action="store_true", help="no progress bar")
+    _output_arguments(sim, "DIR")
     sim.set_defaults(func=cmd_simulate)
     noise = sub.add_parser(
         "analyze-noise",
@@ -220,13 +223,11 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     noise.add_argument("sequence", metavar="SEQ_DIR", help="TUM RGB-D sequence folder with groundtruth.txt")
-    noise.add_argument("--out", required=True, metavar="OUT", help="results folder (created if missing)")
     noise.add_argument("--camera", choices=["fr1", "fr2", "fr3"], help="camera preset (default: from the folder name)")
     noise.add_argument("--max-frames", type=_positive_int, metavar="N", help="only the first N frames")
     noise.add_argument("--pixel-sigma", type=_positive_float, default=2.0, metavar="PX",
                        help="pixel noise used by the outlier gate (default 2)")
-    noise.add_argument("--no-plots", action="store_true", help="do not write plots/")
-    noise.add_argument("--quiet", action="store_true", help="no progress bar")
+    _output_arguments(noise)
     noise.set_defaults(func=cmd_analyze_noise)
     return parser
 

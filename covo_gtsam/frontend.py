@@ -838,7 +838,7 @@ def associate_frames(
     num_matches = int(idx_ref.shape[0])
     X_ref, X_cur = ref.points[idx_ref], cur.points[idx_cur]
     Q_ref, Q_cur = ref.covariances[idx_ref], cur.covariances[idx_cur]
-    T_init = None
+    T_init = prior
     if cfg.outlier_rejection == "rigid3d":
         res = ransac_rigid3d(X_ref, X_cur, Q_ref, Q_cur, cfg.ransac_iterations, cfg.ransac_chi2, cfg.seed,
                              prior=prior)
@@ -848,10 +848,8 @@ def associate_frames(
         # Undistorted pixels: a homography only models undistorted image motion.
         keep = ransac_homography(ref.uv_undistorted[idx_ref], cur.uv_undistorted[idx_cur], cfg.ransac_px,
                                  cfg.ransac_iterations)
-        T_init = prior
     else:
         keep = np.ones(num_matches, bool)
-        T_init = prior
     return PointPairs(
         X_ref=X_ref[keep], X_cur=X_cur[keep], Q_ref=Q_ref[keep], Q_cur=Q_cur[keep],
         uv_ref=ref.features.uv[idx_ref[keep]], uv_cur=cur.features.uv[idx_cur[keep]],

@@ -84,8 +84,11 @@ class OdometryConfig:
         positive = ("pixel_sigma", "scale", "depth_scale", "keyframe_ratio", "max_rotation_deg", "max_translation_m")
         for name in positive + ("frame_sigma_rot_deg", "frame_sigma_trans_m"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0 and (value > 0 or name not in positive)):
-                raise ConfigError(f"{name} must be a {'positive' if name in positive else 'non-negative'} number, got {value!r}")
+            strict = name in positive
+            numeric = isinstance(value, (int, float)) and np.isfinite(value)
+            if not (numeric and (value > 0 if strict else value >= 0)):
+                kind = "positive" if strict else "non-negative"
+                raise ConfigError(f"{name} must be a {kind} number, got {value!r}")
 
     def frame_noise(self) -> np.ndarray:
         """6x6 frame-level covariance added to every relative pose (tangent [omega, v])."""
@@ -236,8 +239,8 @@ class VisualOdometry:
         difference ``dt``, is extrapolated as ``Exp(s Log(T_prev,last))`` with
         ``s = (timestamp - t_last) / dt`` (at most 5) and composed with ``T_ref,last``.
         """
-        if self.config.motion_model != "constant_velocity" or self._velocity is None or self._last is None:
-            return None
+        if self.config.motion_model != "constant_velocity" or self._velocity is None:
+            return None  # a velocity exists only once two frames were tracked, so _last is set
         last_step = self._last[1]
         motion, dt = self._velocity
         s = min((timestamp - last_step.timestamp) / dt, 5.0)
