@@ -59,6 +59,7 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
         "tracked_frames": len(steps) - len(lost),
         "lost_frames": len(lost),
         "lost": [{"timestamp": s.timestamp, "reason": s.reason} for s in lost],
+        "restarts": [{"timestamp": s.timestamp, "reason": s.reason} for s in steps if s.status == "restart"],
         "elapsed_s": float(elapsed_s),
         "frames_per_second": float(len(steps) / elapsed_s) if elapsed_s > 0 else None,
         "mean_pairs": float(np.mean([s.num_pairs for s in steps if s.status == "tracked"] or [0])),

@@ -12,7 +12,7 @@ pair plus initial values::
         graph.add(f)
     graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(), prior_noise))
 
-Keys: every step that has a pose (status ``"first"`` or ``"tracked"``) gets the key
+Keys: every step that has a pose (status ``"first"``, ``"tracked"`` or ``"restart"``) gets the key
 ``gtsam.symbol(prefix, i)`` where ``i`` is its position in ``steps``. For ``vo.steps`` and
 ``RunResult.steps`` -- one step per frame, lost frames included -- ``i`` is therefore the frame
 index in the sequence, so keys stay tied to frames and lost frames simply have no key (gaps in
@@ -24,6 +24,10 @@ noise)`` where ``ref`` is the step whose timestamp is ``step.ref_timestamp``. GT
 ``BetweenFactor`` error is ``Log(T_meas^-1 x_ref^-1 x_cur)`` -- the right-perturbation tangent
 ``[omega, v]`` of ``T_ref,cur`` -- exactly the tangent in which ``step.covariance`` is expressed,
 so the noise is ``gtsam.noiseModel.Gaussian.Covariance(step.covariance)`` with no conversion.
+
+A ``"restart"`` step (a new segment after a run of lost frames) gets no factor: the motion
+across the gap is unknown, so a back end needs another source (a prior, GNSS, loop closure) to
+tie the segments together.
 
 Initial values: ``T_world,cur`` of each keyed step (``step.pose``, world = first tracked camera
 frame); where a step carries no pose, the composition of its reference's value with
@@ -60,9 +64,8 @@ import numpy as np
 from .covariance import ros_to_tangent, tangent_to_ros
 from .errors import InputError
 from .geometry import matrix_to_quat
+from .odometry import POSED_STATUSES
 
-#: Step statuses that carry a pose and get a key.
-POSED_STATUSES = ("first", "tracked")
 
 NoiseSpec = Any  # gtsam noise model, 6x6 covariance, or callable(step) -> one of those
 
@@ -84,7 +87,7 @@ def step_keys(
     prefix: str = "x",
     key_by: str = "index",
 ) -> dict[int, int]:
-    """Map position ``i`` in ``steps`` -> GTSAM key for every step with a pose (first/tracked).
+    """Map position ``i`` in ``steps`` -> GTSAM key for every step with a pose (first/tracked/restart).
 
     ``key`` receives ``i`` (``key_by="index"``, default) or the step's timestamp
     (``key_by="timestamp"``); without it the key is ``gtsam.symbol(prefix, i)``.
@@ -159,7 +162,7 @@ def between_factors(
                 model = _as_noise_model(s.covariance)
             factors.append(gtsam.BetweenFactorPose3(keys[ref], k, s.relative, model))
             pose = s.pose if s.pose is not None else initial.atPose3(keys[ref]).compose(s.relative)
-        else:  # "first"
+        else:  # "first" or "restart"
             pose = s.pose if s.pose is not None else gtsam.Pose3()
         initial.insert(k, pose)
         by_stamp[float(s.timestamp)] = i

@@ -25,6 +25,8 @@ from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, pre
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 
 
+#: Step statuses that carry a pose (``OdometryStep.tracked``).
+POSED_STATUSES = ("first", "tracked", "restart")
 #: Choices of ``OdometryConfig.motion_model``.
 MOTION_MODELS = ("constant_velocity", "none")
 
@@ -55,6 +57,10 @@ class OdometryConfig:
     ``frontend.min_pairs``); then the last tracked frame becomes the keyframe. Each emitted
     relative pose and covariance is that of its own pair (keyframe, frame). Without (default,
     more accurate on the shared data), every frame is matched to the previous tracked one.
+
+    After ``restart_after`` consecutive lost frames the last tracked frame is usually out of
+    view, so the next frame that cannot be matched to it starts a new segment instead of being
+    lost (status ``"restart"``, see :class:`OdometryStep`).
     """
 
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
@@ -73,6 +79,7 @@ class OdometryConfig:
     max_translation_m: float = 0.5
     frame_sigma_rot_deg: float = 0.30
     frame_sigma_trans_m: float = 0.0041
+    restart_after: int = 5
 
     def __post_init__(self) -> None:
         if self.robust in ("", "none"):  # TOML has no null
@@ -89,6 +96,16 @@ class OdometryConfig:
             if not (numeric and (value > 0 if strict else value >= 0)):
                 kind = "positive" if strict else "non-negative"
                 raise ConfigError(f"{name} must be a {kind} number, got {value!r}")
+        r = self.restart_after
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
+            raise ConfigError(f"restart_after must be an integer >= 1, got {r!r}")
+
+    def gap_noise(self) -> np.ndarray:
+        """6x6 covariance of the unknown motion across a tracking gap (tangent [omega, v]):
+        per axis the largest accepted motion, ``max_rotation_deg`` and ``max_translation_m``."""
+        r = np.deg2rad(self.max_rotation_deg) ** 2
+        t = self.max_translation_m**2
+        return np.diag([r, r, r, t, t, t])
 
     def frame_noise(self) -> np.ndarray:
         """6x6 frame-level covariance added to every relative pose (tangent [omega, v])."""
@@ -122,8 +139,11 @@ class OdometryConfig:
 class OdometryStep:
     """Outcome of one :meth:`VisualOdometry.register_frame` call.
 
-    ``status`` is ``"first"`` (the first tracked frame, identity pose), ``"tracked"`` or
-    ``"lost"``. For tracked frames ``relative`` is T_ref,cur (points of this frame into the
+    ``status`` is ``"first"`` (the first tracked frame, identity pose), ``"tracked"``, ``"lost"``
+    or ``"restart"``: the first frame of a new segment after ``restart_after`` lost frames. The
+    motion across the gap is unknown, so a restart has no relative pose; its ``pose`` is the last
+    tracked pose and ``pose_covariance`` that of the last tracked pose plus
+    :meth:`OdometryConfig.gap_noise`. For tracked frames ``relative`` is T_ref,cur (points of this frame into the
     reference frame, the previous tracked one) with ``covariance`` in GTSAM's tangent
     ``[rx ry rz tx ty tz]`` (right perturbation); ``pose`` is T_world,cur with
     ``pose_covariance`` composed to first order along the trajectory.
@@ -143,7 +163,7 @@ class OdometryStep:
 
     @property
     def tracked(self) -> bool:
-        return self.status in ("first", "tracked")
+        return self.status in POSED_STATUSES
 
 
 class VisualOdometry:
@@ -164,6 +184,7 @@ class VisualOdometry:
         self._last: tuple[FrameData, OdometryStep] | None = None  # the last tracked frame
         self._keyframe_min_pairs = 0
         self._velocity: tuple[gtsam.Pose3, float] | None = None  # (T_prev,last, dt) of the last two tracked frames
+        self._lost_run = 0  # consecutive lost frames since the last tracked one
         self.steps: list[OdometryStep] = []
 
     # -- front end -------------------------------------------------------------------------
@@ -220,6 +241,8 @@ class VisualOdometry:
             retry = self._track(self._ref, self._ref_step, frame, timestamp)
             if retry.tracked or not step.tracked:
                 step = retry
+        if not step.tracked and self._lost_run >= self.config.restart_after:
+            return self._restart(frame, step)
         if step.tracked:
             if last is not None and step.timestamp > last[1].timestamp:
                 self._velocity = (last[1].pose.between(step.pose), step.timestamp - last[1].timestamp)
@@ -294,11 +317,26 @@ class VisualOdometry:
         self._last = (frame, step)
         return self._record(step)
 
+    def _restart(self, frame: FrameData, lost: OdometryStep) -> OdometryStep:
+        """Start a new segment at ``frame`` (it could not be matched after a run of lost frames)."""
+        if frame.num_valid < self.config.frontend.min_pairs:
+            return self._record(lost)
+        last = self._last[1]
+        step = OdometryStep(
+            lost.timestamp, "restart",
+            reason=f"new segment after {self._lost_run} lost frames ({lost.reason})",
+            pose=last.pose, pose_covariance=last.pose_covariance + self.config.gap_noise())
+        self._set_keyframe(frame, step)
+        self._last = (frame, step)
+        self._velocity = None
+        return self._record(step)
+
     def mark_lost(self, timestamp: float, reason: str) -> OdometryStep:
         """Report a frame that could not be used at all (e.g. an unreadable file)."""
         return self._record(OdometryStep(float(timestamp), "lost", reason=reason))
 
     def _record(self, step: OdometryStep) -> OdometryStep:
+        self._lost_run = 0 if step.tracked else self._lost_run + 1
         # The history keeps poses only, so memory stays small on long runs.
         self.steps.append(dataclasses.replace(step, result=None))
         return step

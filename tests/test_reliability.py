@@ -91,7 +91,8 @@ def test_cli_listed_file_missing(small_seq, tmp_path):
                                             ('{"robust": "tukey"}', "unknown robust"),
                                             ('{"motion_model": "fast"}', "unknown motion_model"),
                                             ('{"pixel_sigma": -1}', "pixel_sigma must be a positive"),
-                                            ('{"frame_sigma_trans_m": "x"}', "frame_sigma_trans_m must be")])
+                                            ('{"frame_sigma_trans_m": "x"}', "frame_sigma_trans_m must be"),
+                                            ('{"restart_after": 0}', "restart_after must be")])
 def test_cli_bad_config(small_seq, tmp_path, content, needle):
     cfg = tmp_path / "cfg.json"
     if content is not None:
@@ -149,6 +150,7 @@ def test_bad_frame_is_lost_and_run_continues(small_seq, tmp_path, kind):
     _, _, t_prev = frame_files(small_seq, 2)
     m, (t_ref, t_cur, rel, covs) = run_and_load(small_seq, tmp_path / "o")
     assert m["lost_frames"] == 1, m["lost"]
+    assert m["restarts"] == []
     assert m["lost"][0]["timestamp"] == pytest.approx(t_bad) and m["lost"][0]["reason"]
     assert m["tracked_frames"] == N_FRAMES - 1
     # the frame after the lost one is matched to the last good one
@@ -164,6 +166,38 @@ def test_progress_line_shows_lost_count(small_seq, tmp_path):
     proc = run_cli(["run", str(small_seq), "--out", str(tmp_path / "o"), "--no-plots"])
     assert proc.returncode == 0
     assert "lost=1" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_run_restarts_after_a_run_of_lost_frames(sample_dir):
+    """Frames 3..4 are blank, then the view jumps (flipped images, which cannot be matched to the
+    last good frame): after restart_after lost frames the next frame starts a new segment and
+    the frames after it are tracked again instead of being lost for good."""
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.frontend import load_depth
+    from covo_gtsam.graph import between_factors
+    from covo_gtsam.odometry import OdometryConfig
+
+    seq = TumSequence(sample_dir)
+    cfg = OdometryConfig(restart_after=3)
+    vo = VisualOdometry(seq.camera, cfg)
+    statuses = []
+    for i in range(10):
+        img = cv2.imread(seq.rgb_paths[i])
+        if i in (3, 4):
+            img = np.full_like(img, 128)
+        elif i >= 5:
+            img = np.ascontiguousarray(np.roll(img[::-1, ::-1], 200, axis=1))
+        statuses.append(vo.register_frame(img, load_depth(seq.depth_paths[i]), seq.timestamps[i]).status)
+    # 3, 4 blank and 5 (flipped) lost; 6 cannot be matched to frame 2 either and restarts
+    assert statuses == ["first", "tracked", "tracked", "lost", "lost", "lost", "restart",
+                        "tracked", "tracked", "tracked"], statuses
+    last, restart = vo.steps[2], vo.steps[6]
+    assert restart.relative is None and "3 lost frames" in restart.reason
+    assert np.allclose(restart.pose.matrix(), last.pose.matrix())
+    assert np.allclose(restart.pose_covariance, last.pose_covariance + cfg.gap_noise())
+    assert vo.steps[7].ref_timestamp == pytest.approx(restart.timestamp)
+    factors, initial = between_factors(vo.steps)
+    assert len(factors) == 2 + 3 and initial.size() == 7  # no factor across the gap
 
 
 # -- library API -----------------------------------------------------------------------------
