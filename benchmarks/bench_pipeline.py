@@ -25,6 +25,7 @@ import numpy as np
 from _common import sequence_from_command_line
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.estimator import estimate_relative_pose
+from covo_gtsam.rolling_shutter import compensate_points
 from covo_gtsam.frontend import (
     associate_frames,
     detect,
@@ -38,6 +39,14 @@ from covo_gtsam.frontend import (
 from covo_gtsam.io import format_relative_line, format_tum_line
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 from covo_gtsam.pipeline import PREFETCH
+
+
+def compensated_solve(pairs, res, dt: float, height: int, readout: float):
+    """The odometry's second solve: points moved to their image's timestamp with the pair's twist."""
+    twist = gtsam.Pose3.Logmap(res.pose) / dt
+    return estimate_relative_pose(compensate_points(pairs.X_ref, pairs.uv_ref[:, 1], twist, height, readout),
+                                  compensate_points(pairs.X_cur, pairs.uv_cur[:, 1], twist, height, readout),
+                                  pairs.Q_ref, pairs.Q_cur, initial=res.pose)
 
 
 def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
@@ -68,6 +77,10 @@ def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
             pairs = associate_frames(prev, frame, fe)
             res = clock("solve + marginals", estimate_relative_pose, pairs.X_ref, pairs.X_cur, pairs.Q_ref,
                         pairs.Q_cur, initial=None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
+            if cfg.rolling_shutter_s > 0:
+                dt = seq.timestamps[i] - seq.timestamps[i - 1]
+                res = clock("rolling shutter: compensate + solve again", compensated_solve, pairs, res, dt,
+                            seq.camera.height, cfg.rolling_shutter_s)
             clock("output lines", lambda: (format_tum_line(0.0, res.matrix),
                                             format_relative_line(0.0, 0.0, res.matrix, res.covariance)))
         prev = frame

@@ -30,7 +30,8 @@ SIM_VARIANTS = {
     "thesis, phi = 16": dict(weighting="thesis", scale=16.0),
 }
 REAL_VARIANTS = {
-    "default (consistent, 2 px, frame term)": OdometryConfig(),
+    "default (consistent, 2 px, frame term, rolling-shutter compensation)": OdometryConfig(),
+    "default without rolling-shutter compensation": OdometryConfig(rolling_shutter_s=0.0),
     "consistent, 2 px, no frame term": OdometryConfig(frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0),
     "consistent, 2 px, no frame term, variance factor": OdometryConfig(
         frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0, variance_factor=True),
@@ -41,9 +42,9 @@ REAL_VARIANTS = {
     "default + Huber": OdometryConfig(robust="huber"),
     "consistent, 8 px, no frame term": OdometryConfig(pixel_sigma=8.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0),
     "thesis, 8 px, phi = 1": OdometryConfig(pixel_sigma=8.0, weighting="thesis", frame_sigma_rot_deg=0.0,
-                                           frame_sigma_trans_m=0.0),
+                                           frame_sigma_trans_m=0.0, rolling_shutter_s=0.0),
     "thesis, 8 px, phi = 16": OdometryConfig(pixel_sigma=8.0, weighting="thesis", scale=16.0,
-                                            frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0),
+                                            frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0, rolling_shutter_s=0.0),
 }
 
 
