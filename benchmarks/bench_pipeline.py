@@ -25,7 +25,6 @@ import numpy as np
 from _common import sequence_from_command_line
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.estimator import estimate_relative_pose
-from covo_gtsam.rolling_shutter import compensate_points
 from covo_gtsam.frontend import (
     associate_frames,
     detect,
@@ -39,14 +38,14 @@ from covo_gtsam.frontend import (
 from covo_gtsam.io import format_relative_line, format_tum_line
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 from covo_gtsam.pipeline import PREFETCH
+from covo_gtsam.rolling_shutter import compensate_pair
 
 
 def compensated_solve(pairs, res, dt: float, height: int, readout: float):
     """The odometry's second solve: points moved to their image's timestamp with the pair's twist."""
-    twist = gtsam.Pose3.Logmap(res.pose) / dt
-    return estimate_relative_pose(compensate_points(pairs.X_ref, pairs.uv_ref[:, 1], twist, height, readout),
-                                  compensate_points(pairs.X_cur, pairs.uv_cur[:, 1], twist, height, readout),
-                                  pairs.Q_ref, pairs.Q_cur, initial=res.pose)
+    X_ref, X_cur = compensate_pair(pairs.X_ref, pairs.uv_ref[:, 1], pairs.X_cur, pairs.uv_cur[:, 1], res.pose, dt,
+                                   height, readout)
+    return estimate_relative_pose(X_ref, X_cur, pairs.Q_ref, pairs.Q_cur, initial=res.pose)
 
 
 def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:

@@ -23,7 +23,7 @@ from .estimator import ROBUST_KERNELS, RelativePoseResult, estimate_relative_pos
 from .factors import WEIGHTINGS
 from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
-from .rolling_shutter import compensate_points
+from .rolling_shutter import compensate_pair
 
 
 #: Step statuses that carry a pose (``OdometryStep.tracked``).
@@ -63,7 +63,7 @@ class OdometryConfig:
     (seconds; 0 turns the compensation off). With it, each pair is solved once, the camera's
     velocity at both frames is taken from that solution (at the reference frame averaged with
     its own pair's velocity), the points are moved to their image's timestamp
-    (:func:`covo_gtsam.rolling_shutter.compensate_points`) and the pair is solved again. 0.025 s
+    (:func:`covo_gtsam.rolling_shutter.compensate_pair`) and the pair is solved again. 0.025 s
     suits the Kinect v1 (TUM freiburg1/2), chosen on the first half of the shared fr1_rpy frames.
 
     After ``restart_after`` consecutive lost frames the last tracked frame is usually out of
@@ -297,12 +297,10 @@ class VisualOdometry:
         try:
             res = self._solve(pairs.X_ref, pairs.X_cur, pairs, None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
             if self.config.rolling_shutter_s > 0 and dt > 0:
-                twist = gtsam.Pose3.Logmap(res.pose) / dt
-                twist_ref = twist if ref_step.velocity is None else 0.5 * (twist + ref_step.velocity)
-                h, readout = self.camera.height, self.config.rolling_shutter_s
-                res = self._solve(compensate_points(pairs.X_ref, pairs.uv_ref[:, 1], twist_ref, h, readout),
-                                  compensate_points(pairs.X_cur, pairs.uv_cur[:, 1], twist, h, readout),
-                                  pairs, res.pose)
+                X_ref, X_cur = compensate_pair(pairs.X_ref, pairs.uv_ref[:, 1], pairs.X_cur, pairs.uv_cur[:, 1],
+                                               res.pose, dt, self.camera.height, self.config.rolling_shutter_s,
+                                               ref_step.velocity)
+                res = self._solve(X_ref, X_cur, pairs, res.pose)
         except EstimationError as exc:
             step.reason = str(exc)
             return step

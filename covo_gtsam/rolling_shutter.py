@@ -17,6 +17,7 @@ apart. The registered depth image is treated as captured with the same row timin
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 
 from .errors import InputError
@@ -45,3 +46,19 @@ def compensate_points(
     twist = np.asarray(twist, dtype=float).reshape(6)
     d = row_time_offsets(v, height, readout_s)[:, None]
     return X + d * (np.cross(twist[:3], X) + twist[3:])
+
+
+def compensate_pair(
+    X_ref: np.ndarray, v_ref: np.ndarray, X_cur: np.ndarray, v_cur: np.ndarray, T_ref_cur: gtsam.Pose3,
+    dt: float, height: int, readout_s: float, ref_velocity: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points of a frame pair, each frame's moved to its image timestamp (:func:`compensate_points`).
+
+    The twist at the current frame is the pair's mean twist ``Log(T_ref,cur) / dt``; at the
+    reference frame it is averaged with ``ref_velocity`` (the reference's own pair twist, a
+    central estimate) when given. ``v_ref``, ``v_cur``: the points' measured pixel rows.
+    """
+    twist = gtsam.Pose3.Logmap(T_ref_cur) / dt
+    twist_ref = twist if ref_velocity is None else 0.5 * (twist + np.asarray(ref_velocity, dtype=float))
+    return (compensate_points(X_ref, v_ref, twist_ref, height, readout_s),
+            compensate_points(X_cur, v_cur, twist, height, readout_s))

@@ -11,7 +11,7 @@ import pytest
 
 from covo_gtsam.camera import Camera
 from covo_gtsam.estimator import estimate_relative_pose
-from covo_gtsam.rolling_shutter import compensate_points, row_time_offsets
+from covo_gtsam.rolling_shutter import compensate_pair, compensate_points, row_time_offsets
 
 TWIST = np.array([0.4, -0.9, 0.3, 0.05, -0.02, 0.04])  # [ω rad/s, v m/s], a fast hand-held turn
 READOUT = 0.025
@@ -77,6 +77,17 @@ def test_compensated_pair_recovers_the_motion():
                   compensate_points(Xd_k1, v_k1, twist_k1, CAM.height, READOUT))
     assert raw[0] > np.deg2rad(0.1)  # the skew biases the rotation by a tenth of a degree or more
     assert fixed[0] < 0.02 * raw[0] and fixed[1] < 0.02 * raw[1] + 1e-6
+
+
+def test_pair_twists_current_from_the_pose_reference_averaged():
+    """compensate_pair: the current frame gets Log(T)/dt, the reference the mean with its own twist."""
+    X, v = scene(20), np.linspace(0, 479, 20)
+    T, dt, prev = gtsam.Pose3.Expmap(TWIST / 30), 1 / 30, np.array([0.2, 0.1, -0.3, 0.0, 0.01, 0.02])
+    X_ref, X_cur = compensate_pair(X, v, X, v, T, dt, CAM.height, READOUT, prev)
+    np.testing.assert_allclose(X_cur, compensate_points(X, v, TWIST, CAM.height, READOUT), atol=1e-12)
+    np.testing.assert_allclose(X_ref, compensate_points(X, v, 0.5 * (TWIST + prev), CAM.height, READOUT), atol=1e-12)
+    X_ref, _ = compensate_pair(X, v, X, v, T, dt, CAM.height, READOUT)
+    np.testing.assert_allclose(X_ref, X_cur, atol=1e-12)
 
 
 @pytest.mark.slow
