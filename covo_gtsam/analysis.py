@@ -100,7 +100,7 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
 
 def plot_noise(summary: dict, out_dir: Path) -> list[Path]:
     """Figures of 5.3.1-5.3.3: error histogram, per-pair sigma over time, box plots; depth residuals."""
-    from .plots import _plt, save_figure
+    from .plots import _plt, boxplot, save_figure
 
     plt = _plt()
     if plt is None:
@@ -125,7 +125,7 @@ def plot_noise(summary: dict, out_dir: Path) -> list[Path]:
     axes[0, 1].set_ylabel("[px]")
     axes[0, 1].set_title("per frame pair")
     axes[0, 1].legend(fontsize=8)
-    axes[1, 0].boxplot([[p["std_u"] for p in pp], [p["std_v"] for p in pp]], tick_labels=["std u", "std v"])
+    boxplot(axes[1, 0], [[p["std_u"] for p in pp], [p["std_v"] for p in pp]], ["std u", "std v"])
     axes[1, 0].set_ylabel("[px]")
     axes[1, 0].set_title("per-pair standard deviations")
     x = np.linspace(-5, 5, 200)

@@ -101,14 +101,12 @@ class Camera:
             return uv.copy()
         import cv2
 
-        pts = cv2.undistortPoints(
-            uv.reshape(-1, 1, 2),
-            self._K,
-            np.asarray(self.dist),
-            R=None,
-            P=self._K,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-6),
-        )
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-6)
+        src, dist = uv.reshape(-1, 1, 2), np.asarray(self.dist, dtype=float)
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x: the iterative variant takes criteria
+            pts = cv2.undistortPointsIter(src, self._K, dist, np.eye(3), self._K, criteria)
+        else:  # OpenCV 5: undistortPoints takes criteria itself
+            pts = cv2.undistortPoints(src, self._K, dist, R=None, P=self._K, criteria=criteria)
         return pts.reshape(-1, 2).astype(float)
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:

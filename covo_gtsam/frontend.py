@@ -13,7 +13,7 @@ Per frame (:func:`prepare_frame`, computed once and reused for the next pair):
 Per frame pair (:func:`associate_frames`):
 
 4. Brute-force Hamming matching with cross-check among keypoints with valid depth (:func:`match`,
-   ``np.bitwise_count`` on XORed uint64 descriptor words; same matches as
+   ``np.bitwise_count`` (a lookup table on numpy < 2) on XORed uint64 descriptor words; same matches as
    ``cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)``), then the best ``keep_ratio`` by distance.
 5. Outlier rejection: ``"rigid3d"`` (default) RANSAC of a rigid transform over 3-point samples with
    a Mahalanobis inlier test using the point covariances (:func:`ransac_rigid3d`),
@@ -285,6 +285,19 @@ def _as_words(f: Features | np.ndarray) -> np.ndarray:
 
 
 _HAMMING2_MASK = np.uint64(0x5555555555555555)
+_POPCOUNT8 = np.array([bin(i).count("1") for i in range(256)], np.uint8)
+
+
+def _bitcount(x: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Number of set bits of each uint64 of ``x`` into ``out`` (``np.bitwise_count`` on numpy >= 2,
+    a byte lookup table on older numpy)."""
+    if _HAS_BITWISE_COUNT:
+        return np.bitwise_count(x, out=out)
+    counts = _POPCOUNT8[np.ascontiguousarray(x).view(np.uint8)].reshape(*x.shape, 8)
+    return np.sum(counts, axis=-1, dtype=out.dtype, out=out)
+
+
+_HAS_BITWISE_COUNT = hasattr(np, "bitwise_count")
 
 
 def _popcount_block(x: np.ndarray, out8: np.ndarray, hamming2: bool) -> np.ndarray:
@@ -292,7 +305,7 @@ def _popcount_block(x: np.ndarray, out8: np.ndarray, hamming2: bool) -> np.ndarr
     if hamming2:  # NORM_HAMMING2 (WTA_K 3, 4): count 2-bit cells that differ
         np.bitwise_or(x, x >> np.uint64(1), out=x)
         np.bitwise_and(x, _HAMMING2_MASK, out=x)
-    return np.bitwise_count(x, out=out8)
+    return _bitcount(x, out8)
 
 
 def hamming_distances(f_a: Features | np.ndarray, f_b: Features | np.ndarray, hamming2: bool = False) -> np.ndarray:
@@ -338,7 +351,7 @@ def _distance_block(a: np.ndarray, bT: np.ndarray, hamming2: bool, out: np.ndarr
             if hamming2:
                 out[...] = _popcount_block(tmp, c8, True)
             else:
-                np.bitwise_count(tmp, out=out)
+                _bitcount(tmp, out)
             np.add(out, acc, out=out)
     return out
 

@@ -38,6 +38,15 @@ def nees_histogram(ax, nees: np.ndarray, title: str, dof: int = 3) -> None:
     ax.legend(fontsize=8)
 
 
+def boxplot(ax, data: Sequence, labels: Sequence[str]) -> None:
+    """Box plot with tick labels (``tick_labels`` on matplotlib >= 3.9, ``labels`` before)."""
+    import matplotlib
+
+    major, minor = (int(x) for x in matplotlib.__version__.split(".")[:2])
+    key = "tick_labels" if (major, minor) >= (3, 9) else "labels"
+    ax.boxplot(data, **{key: list(labels)})
+
+
 def save_figure(fig, path: Path) -> Path:
     """Lay out, write (PNG, 110 dpi) and close a figure; return its path."""
     fig.tight_layout()
@@ -117,9 +126,9 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
                 labels.append(f"{delta} frame{'s' if delta > 1 else ''}")
         if data_t:
             fig, axes = plt.subplots(1, 2, figsize=(9, 4))
-            axes[0].boxplot(data_t, tick_labels=labels)
+            boxplot(axes[0], data_t, labels)
             axes[0].set_ylabel("translational RPE [cm]")
-            axes[1].boxplot(data_r, tick_labels=labels)
+            boxplot(axes[1], data_r, labels)
             axes[1].set_ylabel("rotational RPE [deg]")
             for ax in axes:
                 ax.grid(True, alpha=0.3)

@@ -84,7 +84,8 @@ def position_fix_factor(key: int, position: np.ndarray, sigma: float) -> gtsam.N
     noise = gtsam.noiseModel.Isotropic.Sigma(3, sigma)
     position = np.asarray(position, dtype=float)
     if hasattr(gtsam, "PoseTranslationPrior3D"):
-        return gtsam.PoseTranslationPrior3D(key, position, noise)
+        # the Pose3 constructor (only its translation is used) exists in every GTSAM 4.2+ wrapper
+        return gtsam.PoseTranslationPrior3D(key, gtsam.Pose3(gtsam.Rot3(), position), noise)
 
     def error(this, values, H):  # pragma: no cover - only for GTSAM builds without the prior
         pose = values.atPose3(key)

@@ -149,8 +149,11 @@ def test_match_blockwise_equals_single_block(frames, monkeypatch):
     np.testing.assert_array_equal(fe.hamming_distances(fa, fb)[:50], fe.hamming_distances(fa.subset(np.arange(50)), fb))
 
 
+@pytest.mark.parametrize("lookup_table", [False, True], ids=["bitwise_count", "numpy<2 table"])
 @pytest.mark.parametrize("norm, hamming2", [(cv2.NORM_HAMMING, False), (cv2.NORM_HAMMING2, True)])
-def test_hamming_distances_equal_opencv_norm(norm, hamming2):
+def test_hamming_distances_equal_opencv_norm(norm, hamming2, lookup_table, monkeypatch):
+    if lookup_table:
+        monkeypatch.setattr(fe, "_HAS_BITWISE_COUNT", False)
     rng = np.random.default_rng(3)
     a = rng.integers(0, 256, (37, 32), dtype=np.uint8)
     b = rng.integers(0, 256, (29, 32), dtype=np.uint8)
