@@ -98,13 +98,14 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
     }
 
 
-def plot_noise(summary: dict, out_dir: Path) -> list[Path]:
-    """Figures of 5.3.1-5.3.3: error histogram, per-pair sigma over time, box plots; depth residuals."""
+def plot_noise(summary: dict, out_dir: Path) -> list[Path] | None:
+    """Figures of 5.3.1-5.3.3: error histogram, per-pair sigma over time, box plots; depth residuals.
+    Returns the files written, or None when matplotlib is not installed."""
     from .plots import _plt, boxplot, save_figure
 
     plt = _plt()
     if plt is None:
-        return []
+        return None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     s = summary["_samples"]

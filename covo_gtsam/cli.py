@@ -88,11 +88,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     m = result.metrics
     line = f"{m['frames']} frames, {m['lost_frames']} lost, {m['frames_per_second']:.1f} frames/s"
-    if "rpe_30" in m:
+    if m.get("rpe_30"):
         line += f", RPE30 {m['rpe_30']['trans_rmse']:.4f} m"
     if "anees_translation" in m:
         line += f", ANEES t {m['anees_translation']:.2f} r {m['anees_rotation']:.2f}"
     print(line)
+    if result.plot_files is None:
+        _plots_missing()
     print(f"results in {result.out_dir}")
     return 0
 
@@ -120,7 +122,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not args.no_plots:
         from .plots import plot_simulation
 
-        plot_simulation(result, out / "plots")
+        if plot_simulation(result, out / "plots") is None:
+            _plots_missing()
     print(
         f"{cfg.runs} runs, {cfg.weighting} weighting, scale {cfg.scale:g}, {cfg.pixel_sigma:g} px: "
         f"ANEES translation {summary['anees_translation']:.2f}, rotation {summary['anees_rotation']:.2f} "
@@ -141,7 +144,8 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
     out = check_output_dir(Path(args.out))
     summary = analyze_sequence(seq, pixel_sigma=args.pixel_sigma, max_frames=args.max_frames, progress=not args.quiet)
     if not args.no_plots:
-        plot_noise(summary, out / "plots")
+        if plot_noise(summary, out / "plots") is None:
+            _plots_missing()
     summary.pop("_samples")
     write_json(out / "noise.json", summary)
     pe, dz = summary["pixel_error"], summary["depth_residual_normalised"]
@@ -151,6 +155,12 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
           f"(robust {dz['robust_sigma']:.2f}, 1 = model right)")
     print(f"results in {out}")
     return 0
+
+
+def _plots_missing() -> None:
+    from .plots import PLOTS_MISSING
+
+    print(PLOTS_MISSING, file=sys.stderr)
 
 
 def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT") -> None:

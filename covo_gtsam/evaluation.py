@@ -7,7 +7,7 @@ from typing import Sequence
 import numpy as np
 
 from .geometry import invert_pose
-from .metrics import ate, chi2_quantile, relative_pose_nees, rpe
+from .metrics import ate_errors, ate_statistics, chi2_quantile, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .odometry import OdometryStep
 
 #: RPE intervals (frames) reported by ``covo run``.
@@ -43,6 +43,29 @@ def relative_ground_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float
     return np.array(est).reshape(-1, 4, 4), np.array(true).reshape(-1, 4, 4), np.array(covs).reshape(-1, 6, 6)
 
 
+def tracked_segments(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]):
+    """Ground-truth and estimated poses T_world,cam (K_s, 4, 4) of the tracked frames with ground
+    truth, one pair of arrays per segment. A restart begins a new segment: the motion across its
+    gap is unknown, so no trajectory error may span it."""
+    segments: list[list[OdometryStep]] = [[]]
+    for s in steps:
+        if s.status == "restart":
+            segments.append([])
+        if s.tracked and s.timestamp in stamp_to_gt:
+            segments[-1].append(s)
+    return [(np.array([stamp_to_gt[s.timestamp] for s in seg]), np.array([s.pose.matrix() for s in seg]))
+            for seg in segments if seg]
+
+
+def segment_rpe_errors(segments, delta: int) -> tuple[np.ndarray, np.ndarray]:
+    """Translational (m) and rotational (rad) RPE over ``delta`` frames, pooled over the pairs
+    ``(i, i + delta)`` inside each segment of :func:`tracked_segments`."""
+    parts = [relative_pose_errors(G, P, delta) for G, P in segments if len(G) > delta]
+    if not parts:
+        return np.empty(0), np.empty(0)
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
 def ground_truth_lookup(seq) -> dict[float, np.ndarray]:
     """Map frame timestamp -> ground-truth pose T_world,cam for frames with valid ground truth."""
     if getattr(seq, "groundtruth", None) is None:
@@ -67,14 +90,15 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
     gt = ground_truth_lookup(seq)
     if not gt:
         return metrics
-    tracked = [s for s in steps if s.tracked and s.timestamp in gt]
-    est = np.array([s.pose.matrix() for s in tracked]).reshape(-1, 4, 4)
-    ref = np.array([gt[s.timestamp] for s in tracked]).reshape(-1, 4, 4)
+    segments = tracked_segments(steps, gt)
+    metrics["segments"] = len(segments)
     for delta in RPE_DELTAS:
-        if len(tracked) > delta:
-            metrics[f"rpe_{delta}"] = rpe(ref, est, delta)
-    if len(tracked) >= 3:
-        metrics["ate"] = ate(ref, est)
+        tr, rot = segment_rpe_errors(segments, delta)
+        # None says there is no pair of tracked frames delta apart inside one segment
+        metrics[f"rpe_{delta}"] = rpe_statistics(tr, rot, delta) if tr.size else None
+    # each segment is aligned on its own (segments are not connected); errors pooled
+    ate_parts = [ate_errors(G, P)[0] for G, P in segments if len(G) >= 3]
+    metrics["ate"] = ate_statistics(np.concatenate(ate_parts)) if ate_parts else None
     T_est, T_true, covs = relative_ground_truth(steps, gt)
     if len(T_est):
         metrics.update(consistency_metrics(T_est, T_true, covs))

@@ -16,6 +16,8 @@ from .geometry import invert_pose, rotation_angle, skew
 __all__ = [
     "anees",
     "ate",
+    "ate_errors",
+    "ate_statistics",
     "chi2_cdf",
     "chi2_pdf",
     "chi2_quantile",
@@ -23,6 +25,7 @@ __all__ = [
     "relative_pose_errors",
     "relative_pose_nees",
     "rpe",
+    "rpe_statistics",
     "se3_log",
     "umeyama_alignment",
 ]
@@ -58,7 +61,15 @@ def rpe(poses_gt: np.ndarray, poses_est: np.ndarray, delta: int = 1) -> dict:
     Keys: ``trans_rmse``, ``trans_mean``, ``trans_median`` (m), ``rot_rmse_deg``, ``rot_mean_deg``,
     ``n`` (number of pairs), ``delta_frames``.
     """
-    tr, rot = relative_pose_errors(poses_gt, poses_est, delta)
+    return rpe_statistics(*relative_pose_errors(poses_gt, poses_est, delta), delta)
+
+
+def rpe_statistics(trans_err: np.ndarray, rot_err: np.ndarray, delta: int) -> dict:
+    """The :func:`rpe` dictionary of translational (m) and rotational (rad) errors, e.g. pooled
+    from several trajectory segments."""
+    tr, rot = np.asarray(trans_err, dtype=float), np.asarray(rot_err, dtype=float)
+    if tr.size == 0 or tr.shape != rot.shape:
+        raise InputError(f"need equally many (>= 1) translational and rotational errors, got {tr.shape}, {rot.shape}")
     return {
         "delta_frames": int(delta),
         "trans_rmse": float(np.sqrt(np.mean(tr**2))),
@@ -100,17 +111,29 @@ def ate(poses_gt: np.ndarray, poses_est: np.ndarray, with_scale: bool = False) -
     The alignment is SE(3) (Sim(3) with ``with_scale``) by :func:`umeyama_alignment` on the positions.
     Keys: ``rmse``, ``mean``, ``median``, ``max`` (m), ``n``, ``scale``.
     """
+    err, s = ate_errors(poses_gt, poses_est, with_scale)
+    return {**ate_statistics(err), "scale": float(s)}
+
+
+def ate_errors(poses_gt: np.ndarray, poses_est: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, float]:
+    """Position errors (N,) in m after :func:`umeyama_alignment` of the estimate, and the scale."""
     G, P = _pose_pair(poses_gt, poses_est)
     pg, pe = G[:, :3, 3], P[:, :3, 3]
     R, t, s = umeyama_alignment(pe, pg, with_scale)
-    err = np.linalg.norm(pg - (s * pe @ R.T + t), axis=1)
+    return np.linalg.norm(pg - (s * pe @ R.T + t), axis=1), s
+
+
+def ate_statistics(err: np.ndarray) -> dict:
+    """``rmse``, ``mean``, ``median``, ``max`` (m) and ``n`` of position errors (e.g. pooled from segments)."""
+    err = np.asarray(err, dtype=float)
+    if err.size == 0:
+        raise InputError("need at least one position error")
     return {
         "rmse": float(np.sqrt(np.mean(err**2))),
         "mean": float(np.mean(err)),
         "median": float(np.median(err)),
         "max": float(np.max(err)),
         "n": int(err.shape[0]),
-        "scale": float(s),
     }
 
 

@@ -48,6 +48,8 @@ class RunResult:
     metrics: dict
     steps: list[OdometryStep] = field(repr=False)
     gt_poses: np.ndarray | None = field(default=None, repr=False)
+    #: figures written; None when plots were asked for but matplotlib is not installed
+    plot_files: list[Path] | None = field(default_factory=list)
 
 
 def check_output_dir(out_dir: Path) -> Path:
@@ -132,5 +134,5 @@ def run_sequence(
     if plots:
         from .plots import plot_run
 
-        plot_run(vo.steps, seq, metrics, out / "plots")
+        result.plot_files = plot_run(vo.steps, seq, metrics, out / "plots")
     return result

@@ -8,7 +8,7 @@ from typing import Sequence
 import numpy as np
 
 from .geometry import invert_pose
-from .metrics import chi2_pdf, chi2_quantile, relative_pose_errors, relative_pose_nees
+from .metrics import chi2_pdf, chi2_quantile, relative_pose_nees
 
 
 def _plt():
@@ -36,6 +36,9 @@ def nees_histogram(ax, nees: np.ndarray, title: str, dof: int = 3) -> None:
     ax.set_xlabel("NEES (values above the range are put in the last bin)")
     ax.set_ylabel("density")
     ax.legend(fontsize=8)
+
+
+PLOTS_MISSING = 'plots skipped: matplotlib is not installed (pip install "covo-gtsam[plots]")'
 
 
 def boxplot(ax, data: Sequence, labels: Sequence[str]) -> None:
@@ -74,12 +77,21 @@ def ellipse_xy(ax, center: np.ndarray, cov2: np.ndarray, nsigma: float = 3.0, **
     ax.plot(pts[:, 0], pts[:, 1], **kw)
 
 
-def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
-    """Trajectory with 3-sigma ellipses, NEES histograms and RPE box plots of a run."""
+RUN_PLOTS = ("trajectory.png", "nees.png", "rpe.png")
+
+
+def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path] | None:
+    """Trajectory with 3-sigma ellipses, NEES histograms and RPE box plots of a run.
+
+    Returns the files written (figures that need ground truth are left out without it; older
+    ones of the same names are removed), or None when matplotlib is not installed.
+    """
     plt = _plt()
     if plt is None:
-        return []
-    from .evaluation import ground_truth_lookup, relative_ground_truth
+        return None
+    for name in RUN_PLOTS:
+        (Path(out_dir) / name).unlink(missing_ok=True)
+    from .evaluation import RPE_DELTAS, ground_truth_lookup, relative_ground_truth, segment_rpe_errors, tracked_segments
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -115,12 +127,11 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
         nees_histogram(axes[1], nees_rot, "rotation NEES per frame pair")
         written.append(save_figure(fig, out_dir / "nees.png"))
 
-        gt_poses = np.array([gt[s.timestamp] for s in tracked if s.timestamp in gt])
-        est_poses = np.array([s.pose.matrix() for s in tracked if s.timestamp in gt])
+        segments = tracked_segments(steps, gt)
         data_t, data_r, labels = [], [], []
-        for delta in (1, 30):
-            if len(gt_poses) > delta:
-                tr, rot = relative_pose_errors(gt_poses, est_poses, delta)
+        for delta in RPE_DELTAS:
+            tr, rot = segment_rpe_errors(segments, delta)
+            if tr.size:
                 data_t.append(tr * 100)
                 data_r.append(np.rad2deg(rot))
                 labels.append(f"{delta} frame{'s' if delta > 1 else ''}")
@@ -137,11 +148,12 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path]:
     return written
 
 
-def plot_simulation(result, out_dir: Path) -> list[Path]:
-    """NEES histograms and per-axis errors against their 1/3-sigma bounds (thesis Figs 5.2.4-5.2.7)."""
+def plot_simulation(result, out_dir: Path) -> list[Path] | None:
+    """NEES histograms and per-axis errors against their 1/3-sigma bounds (thesis Figs 5.2.4-5.2.7);
+    the files written, or None when matplotlib is not installed."""
     plt = _plt()
     if plt is None:
-        return []
+        return None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []

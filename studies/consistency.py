@@ -151,7 +151,7 @@ def real_tables(data: Path, out_dir: Path) -> list[str]:
             cell = (f"{m['anees_translation']:.2f} / {m['anees_rotation']:.2f}; "
                     f"{100 * m['share_nees_translation_above_chi2_975']:.0f} % / "
                     f"{100 * m['share_nees_rotation_above_chi2_975']:.0f} %")
-            if "rpe_30" in m:
+            if m.get("rpe_30"):
                 cell += f"; RPE30 {m['rpe_30']['trans_rmse']:.4f} m"
             cells.append(cell)
             if name.startswith("default") or name.startswith("thesis, 8 px, phi = 16"):

@@ -189,3 +189,50 @@ def test_relative_pose_nees_is_chi2_when_consistent():
     nr, nt = relative_pose_nees(T_est, T_true, np.tile(cov, (n, 1, 1)))
     assert anees(nr) == pytest.approx(3.0, abs=0.15) and anees(nt) == pytest.approx(3.0, abs=0.15)
     np.testing.assert_allclose(invert_pose(T_est[:3]) @ T_est[:3], np.tile(np.eye(4), (3, 1, 1)), atol=1e-12)
+
+
+# -- run evaluation across restarts -----------------------------------------------------------
+
+def _steps_with_restart(gt: np.ndarray, stamps: np.ndarray, restart_at: int):
+    """Steps whose poses equal the ground truth inside each segment; the restart frame keeps the
+    last tracked pose (as the odometry does), so the estimate jumps by the unknown gap motion."""
+    from types import SimpleNamespace
+
+    from covo_gtsam.odometry import OdometryStep
+
+    steps, offset = [], np.eye(4)
+    for i, (t, g) in enumerate(zip(stamps, gt)):
+        if i == restart_at:
+            offset = steps[-1].pose.matrix() @ np.linalg.inv(g)
+            status = "restart"
+        else:
+            status = "first" if i == 0 else "tracked"
+        steps.append(OdometryStep(float(t), status, pose=gtsam.Pose3(offset @ g)))
+    seq = SimpleNamespace(name="synthetic", timestamps=stamps, groundtruth=gt, gt_valid=np.ones(len(gt), bool))
+    return steps, seq
+
+
+def test_run_metrics_do_not_span_a_restart(random_trajectory):
+    from covo_gtsam.evaluation import evaluate_run
+
+    stamps, gt = random_trajectory(n=60, seed=3)
+    steps, seq = _steps_with_restart(gt, stamps, restart_at=20)
+    m = evaluate_run(steps, seq, 1.0)
+    assert m["segments"] == 2
+    # exact inside each segment: no pair crosses the gap, each segment is aligned on its own
+    assert m["rpe_1"]["trans_rmse"] < 1e-9 and m["rpe_1"]["n"] == 19 + 39
+    assert m["rpe_30"]["trans_rmse"] < 1e-9 and m["rpe_30"]["n"] == 10  # only the 40-frame segment
+    assert m["ate"]["rmse"] < 1e-9 and m["ate"]["n"] == 60
+    # the same poses read as one segment do show the jump (the check above can fail)
+    from covo_gtsam.metrics import rpe
+
+    assert rpe(gt, np.array([s.pose.matrix() for s in steps]), 1)["trans_rmse"] > 1e-3
+
+
+def test_run_metrics_say_none_when_no_pair_is_far_enough_apart(random_trajectory):
+    from covo_gtsam.evaluation import evaluate_run
+
+    stamps, gt = random_trajectory(n=25, seed=4)
+    steps, seq = _steps_with_restart(gt, stamps, restart_at=10)
+    m = evaluate_run(steps, seq, 1.0)
+    assert m["rpe_30"] is None and m["rpe_1"]["n"] == 9 + 14

@@ -253,3 +253,24 @@ def test_same_input_gives_identical_outputs(small_seq, tmp_path):
         assert main(["run", str(small_seq), "--out", str(tmp_path / name), "--quiet", "--no-plots"]) == 0
     for f in ("trajectory.txt", "relative.txt"):
         assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes()
+
+
+def test_missing_matplotlib_is_reported_not_silent(small_seq, tmp_path, monkeypatch, capsys):
+    from covo_gtsam import plots
+
+    monkeypatch.setattr(plots, "_plt", lambda: None)
+    assert main(["run", str(small_seq), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "plots skipped" in err and "covo-gtsam[plots]" in err
+    assert not (tmp_path / "o" / "plots").exists()
+
+
+def test_rerun_without_ground_truth_removes_stale_plots(small_seq, tmp_path):
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "o"
+    assert main(["run", str(small_seq), "--out", str(out), "--quiet"]) == 0
+    assert (out / "plots" / "nees.png").exists() and (out / "plots" / "rpe.png").exists()
+    (small_seq / "groundtruth.txt").unlink()
+    assert main(["run", str(small_seq), "--out", str(out), "--quiet"]) == 0
+    assert (out / "plots" / "trajectory.png").exists()
+    assert not (out / "plots" / "nees.png").exists() and not (out / "plots" / "rpe.png").exists()
