@@ -1,4 +1,4 @@
-"""Command line: ``covo run``, ``covo simulate``.
+"""Command line: ``covo run``, ``covo simulate``, ``covo analyze-noise``.
 
 Every failure the package knows about ends with exit code 2 and one line on stderr naming the
 file and the problem; no traceback.

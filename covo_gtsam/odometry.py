@@ -3,7 +3,7 @@
 Data flow per frame: colour + depth -> ORB features and per-keypoint 3D points with covariances
 (:mod:`covo_gtsam.frontend`) -> matched point pairs with the previous tracked frame -> relative
 pose ``T_ref,cur`` and its covariance (:mod:`covo_gtsam.estimator`) -> absolute pose
-``T_world,cur`` (world = first camera frame) with a first-order composed covariance.
+``T_world,cur`` (world = the first tracked camera frame) with a first-order composed covariance.
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ def save_figure(fig, path: Path) -> Path:
 
 def plane_axes(ax, a: int, b: int, title: str, legend_size: int = 8) -> None:
     """Label a top view on world axes ``a``, ``b`` (0..2 = x, y, z in metres), equal scale, grid, legend."""
-    ax.set_xlabel(f"{'xyz'[a]} [m] (first camera frame)")
+    ax.set_xlabel(f"{'xyz'[a]} [m] (first tracked camera frame)")
     ax.set_ylabel(f"{'xyz'[b]} [m]")
     ax.set_title(title)
     ax.axis("equal")
