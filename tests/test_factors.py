@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from covo_gtsam.factors import (
+    compress_system,
     pair_between_factor,
     pair_factor,
     residual_covariances,
@@ -119,21 +120,43 @@ def whitened_error(factor, values):
     return -lin.jacobian()[1]
 
 
+def stacked_error(X_k, X_k1, C_b, C_f):
+    """Pose -> the 6N whitened two-way error, computed in numpy (the vectorised factors' model)."""
+    W_b, W_f = whitening(C_b), whitening(C_f)
+    return lambda P: np.concatenate([np.einsum("nij,nj->ni", W_b, r).ravel() if k == 0 else
+                                     np.einsum("nij,nj->ni", W_f, r).ravel() for k, r in
+                                     enumerate(transfer_residuals(P.rotation().matrix(), P.translation(), X_k, X_k1))])
+
+
+def assert_linearisation(factor, values, A, e, J_num, e_num):
+    """The factor's linear system (A, e) has the normal equations of the numerical one of the
+    stacked error (J_num, e_num): A^T A = J^T J, A^T e = J^T e, and the same error |e|^2. (A
+    per-pair factor's rows differ from J_num by GTSAM's choice of square-root information, an
+    orthogonal transform; a vectorised factor hands GTSAM 7 compressed rows.)"""
+    H_num, g_num = J_num.T @ J_num, J_num.T @ e_num
+    np.testing.assert_allclose(A.T @ A, H_num, rtol=1e-6, atol=1e-6 * np.abs(H_num).max())
+    np.testing.assert_allclose(A.T @ e, g_num, rtol=1e-6, atol=1e-6 * np.abs(g_num).max())
+    assert factor.error(values) == pytest.approx(0.5 * e_num @ e_num, rel=1e-9)
+
+
 @pytest.mark.parametrize("weighting", ["thesis", "consistent"])
 def test_unary_factor_jacobians_numerically(weighting):
     T, X_k, X_k1, Q_k, Q_k1 = random_problem(n=5)
     C_b, C_f = residual_covariances(Q_k, Q_k1, weighting, T.rotation().matrix())
-    for f in (transfer_factor(K0, X_k, X_k1, C_b, C_f), pair_factor(K0, X_k[0], X_k1[0], C_b[0], C_f[0])):
+    for f, m in ((transfer_factor(K0, X_k, X_k1, C_b, C_f), 5), (pair_factor(K0, X_k[0], X_k1[0], C_b[0], C_f[0]), 1)):
         vals = gtsam.Values()
         vals.insert(K0, T)
-        A, _ = factor_jacobians(f, vals)
+        A, e = factor_jacobians(f, vals)
+        err = stacked_error(X_k[:m], X_k1[:m], C_b[:m], C_f[:m])
+        assert_linearisation(f, vals, A, e, numerical_jacobian(err, T), err(T))
+        if m == 1:  # per pair: the rows themselves against the factor's own whitened error
 
-        def err(P, f=f):
-            v = gtsam.Values()
-            v.insert(K0, P)
-            return whitened_error(f, v)
+            def own(P, f=f):
+                v = gtsam.Values()
+                v.insert(K0, P)
+                return whitened_error(f, v)
 
-        np.testing.assert_allclose(A, numerical_jacobian(err, T), rtol=1e-6, atol=1e-5)
+            np.testing.assert_allclose(A, numerical_jacobian(own, T), rtol=1e-6, atol=1e-5)
 
 
 @pytest.mark.parametrize("weighting", ["thesis", "consistent"])
@@ -143,35 +166,53 @@ def test_binary_factor_jacobians_numerically(weighting):
     x0 = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3)), rng.normal(size=3))
     x1 = x0.compose(T)
     C_b, C_f = residual_covariances(Q_k, Q_k1, weighting, T.rotation().matrix())
-    for f in (
-        transfer_between_factor(K0, K1, X_k, X_k1, C_b, C_f),
-        pair_between_factor(K0, K1, X_k[0], X_k1[0], C_b[0], C_f[0]),
+    for f, m in (
+        (transfer_between_factor(K0, K1, X_k, X_k1, C_b, C_f), 5),
+        (pair_between_factor(K0, K1, X_k[0], X_k1[0], C_b[0], C_f[0]), 1),
     ):
         vals = gtsam.Values()
         vals.insert(K0, x0)
         vals.insert(K1, x1)
-        A, _ = factor_jacobians(f, vals)
+        A, e = factor_jacobians(f, vals)
+        err = stacked_error(X_k[:m], X_k1[:m], C_b[:m], C_f[:m])
+        num = np.hstack([numerical_jacobian(lambda P: err(P.between(x1)), x0),
+                         numerical_jacobian(lambda P: err(x0.between(P)), x1)])
+        assert_linearisation(f, vals, A, e, num, err(T))
+        if m == 1:  # per pair: the rows themselves against the factor's own whitened error
 
-        def err0(P, f=f):
-            v = gtsam.Values()
-            v.insert(K0, P)
-            v.insert(K1, x1)
-            return whitened_error(f, v)
+            def own(P0, P1, f=f):
+                v = gtsam.Values()
+                v.insert(K0, P0)
+                v.insert(K1, P1)
+                return whitened_error(f, v)
 
-        def err1(P, f=f):
-            v = gtsam.Values()
-            v.insert(K0, x0)
-            v.insert(K1, P)
-            return whitened_error(f, v)
-
-        num = np.hstack([numerical_jacobian(err0, x0), numerical_jacobian(err1, x1)])
-        np.testing.assert_allclose(A, num, rtol=1e-6, atol=1e-5)
+            num_own = np.hstack([numerical_jacobian(lambda P: own(P, x1), x0), numerical_jacobian(lambda P: own(x0, P), x1)])
+            np.testing.assert_allclose(A, num_own, rtol=1e-6, atol=1e-5)
         # the binary factor at x0^-1 x1 = T equals the unary factor at T
         v = gtsam.Values()
         v.insert(K0, T)
-        unary = transfer_factor(K0, X_k, X_k1, C_b, C_f) if f.dim() > 6 else pair_factor(
+        unary = transfer_factor(K0, X_k, X_k1, C_b, C_f) if m > 1 else pair_factor(
             K0, X_k[0], X_k1[0], C_b[0], C_f[0])
-        np.testing.assert_allclose(whitened_error(f, vals), whitened_error(unary, v), atol=1e-9)
+        A_u, e_u = factor_jacobians(unary, v)
+        np.testing.assert_allclose(e, e_u, atol=1e-9)
+        np.testing.assert_allclose(A[:, 6:], A_u, atol=1e-9)
+
+
+@pytest.mark.parametrize("rank", [6, 5])
+def test_compressed_system_keeps_normal_equations_and_error(rank):
+    rng = np.random.default_rng(rank)
+    J = rng.normal(size=(60, 6))
+    if rank < 6:  # degenerate geometry: one direction unobserved
+        J[:, 5] = J[:, :5] @ rng.normal(size=5)
+    e = rng.normal(size=60)
+    e7, R7 = compress_system(e, J)
+    assert e7.shape == (7,) and R7.shape == (7, 6) and np.all(R7[6] == 0)
+    np.testing.assert_allclose(R7.T @ R7, J.T @ J, atol=1e-9)
+    np.testing.assert_allclose(R7.T @ e7, J.T @ e, atol=1e-9)
+    assert e7 @ e7 == pytest.approx(e @ e, rel=1e-12)
+    # the same Gauss-Newton model: |e + J d|^2 == |e7 + R7 d|^2 for any step d
+    d = rng.normal(size=6)
+    assert np.sum((e7 + R7 @ d) ** 2) == pytest.approx(np.sum((e + J @ d) ** 2), rel=1e-9)
 
 
 def solve(graph, init):
