@@ -15,10 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from .datasets.tum import TumSequence
-from .errors import DatasetError
+from .errors import DatasetError, InputError
 from .frontend import FrontendConfig, associate_frames, load_depth, load_grey, make_orb, prepare_frame
 from .geometry import invert_pose
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
+from .validation import check_int, check_real
 
 
 def robust_sigma(x: np.ndarray) -> float:
@@ -29,15 +30,30 @@ def robust_sigma(x: np.ndarray) -> float:
 
 def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_sigma: float = 2.0,
                      max_frames: int | None = None, progress: bool = False) -> dict:
-    """Per-pair and overall statistics of pixel errors and normalised depth residuals."""
+    """Per-pair and overall statistics of pixel errors and normalised depth residuals.
+
+    Frames are paired with the next one; a pair needs both frames readable, both with ground
+    truth and matched points in front of the camera.
+
+    Raises:
+        ConfigError: ``max_frames`` is not an integer >= 2 (or None), ``pixel_sigma`` is not a
+            positive number, or ``cfg`` does not fit the camera's image size.
+        DatasetError: no ground truth, fewer than 2 frames, or no frame pair could be analysed.
+    """
+    if max_frames is not None:
+        check_int("max_frames", max_frames, 2)
+    check_real("pixel_sigma", pixel_sigma, "positive")
     if seq.groundtruth is None:
         raise DatasetError(f"{seq.path}: the noise analysis needs groundtruth.txt")
     cfg = cfg or FrontendConfig()
     cam = seq.camera
+    cfg.check_image_size(cam.width, cam.height)
     orb = make_orb(cfg)
     depth_model = KinectAxialNoise()
     model = PointNoiseModel(pixel=PixelNoise(pixel_sigma, pixel_sigma), depth=depth_model)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
+    if n < 2:
+        raise DatasetError(f"{seq.path}: the noise analysis needs at least 2 frames (frame pairs), got {n}")
     frames = range(n)
     if progress:
         from tqdm import tqdm
@@ -48,7 +64,7 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
     for i in frames:
         try:
             cur = prepare_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), cam, orb, model, cfg)
-        except Exception:  # unreadable frame: the pair chain restarts
+        except InputError:  # missing, unreadable, corrupt or wrong-sized image: the pair chain restarts
             prev = None
             continue
         if prev is not None and seq.gt_valid[i] and seq.gt_valid[prev[0]]:
@@ -58,6 +74,9 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
                 T = invert_pose(seq.groundtruth[j]) @ seq.groundtruth[i]
                 Xm = pairs.X_cur @ T[:3, :3].T + T[:3, 3]
                 ok = Xm[:, 2] > 0
+                if not ok.any():
+                    prev = (i, cur)
+                    continue
                 proj = cam.distort(cam.project(Xm[ok]))
                 d = pairs.uv_ref[ok] - proj
                 dz = (pairs.X_ref[ok, 2] - Xm[ok, 2]) / np.hypot(
@@ -74,6 +93,10 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
                     "depth_residual_std": float(np.std(dz)), "depth_residual_robust_sigma": robust_sigma(dz),
                 })
         prev = (i, cur)
+    if not per_pair:
+        raise DatasetError(
+            f"{seq.path}: no frame pair could be analysed among the first {n} frames (a pair needs two "
+            "consecutive readable frames with ground truth and matched points)")
     du = np.concatenate(all_du) if all_du else np.zeros(0)
     dv = np.concatenate(all_dv) if all_dv else np.zeros(0)
     dz = np.concatenate(all_dz) if all_dz else np.zeros(0)

@@ -51,10 +51,26 @@ class Camera:
     @classmethod
     def preset(cls, name: str) -> "Camera":
         """TUM RGB-D colour-camera presets: ``"fr1"``, ``"fr2"``, ``"fr3"``."""
-        key = name.lower().replace("freiburg", "fr")
+        key = name.lower().replace("freiburg", "fr") if isinstance(name, str) else None
         if key not in PRESETS:
             raise ConfigError(f"unknown camera preset {name!r}; choose one of {sorted(PRESETS)}")
         return PRESETS[key]
+
+    @classmethod
+    def resolve(cls, camera: "Camera | str", what: str = "camera") -> "Camera":
+        """The preset ``camera`` names (see :meth:`preset`) if it is a string, else ``camera``
+        itself: a :class:`Camera` or an object with the same interface.
+
+        Raises:
+            ConfigError: an unknown preset name, or an object without the camera interface
+                (``what`` names the argument).
+        """
+        if isinstance(camera, str):
+            return cls.preset(camera)
+        if isinstance(camera, cls) or all(hasattr(camera, a) for a in _CAMERA_INTERFACE):
+            return camera
+        raise ConfigError(
+            f"{what} must be a Camera or a preset name ({', '.join(sorted(PRESETS))}), got {camera!r}")
 
     def project(self, X: np.ndarray) -> np.ndarray:
         """Undistorted pixels (N, 2) of camera-frame points (N, 3); Z must be > 0."""
@@ -119,6 +135,9 @@ class Camera:
             & (uv[:, 1] <= self.height - 1 - margin)
         )
 
+
+#: What :meth:`Camera.resolve` requires of a camera that is not a :class:`Camera`.
+_CAMERA_INTERFACE = ("width", "height", "project", "backproject", "backprojection_jacobian", "undistort", "distort")
 
 PRESETS: dict[str, Camera] = {
     # TUM RGB-D benchmark colour cameras (thesis Table A.1; freiburg3 images are undistorted).

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -36,9 +37,43 @@ def _positive_float(text: str) -> float:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {value}")
     return value
+
+
+def _int_in(minimum: int, maximum: int | None = None):
+    """argparse type: an integer in ``[minimum, maximum]`` (no upper limit if None)."""
+    expected = f"an integer >= {minimum}" if maximum is None else f"an integer from {minimum} to {maximum}"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+        if value < minimum or (maximum is not None and value > maximum):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {value}")
+        return value
+
+    return parse
+
+
+def _float_in(minimum: float | None = None, maximum: float | None = None):
+    """argparse type: a positive finite number, optionally in ``[minimum, maximum]``."""
+    expected = "a positive number" + (f" >= {minimum:g}" if minimum is not None else "") + (
+        f" <= {maximum:g}" if maximum is not None else "")
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+        if not (value > 0 and math.isfinite(value) and (minimum is None or value >= minimum)
+                and (maximum is None or value <= maximum)):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {value:g}")
+        return value
+
+    return parse
 
 
 def load_config_file(path: str):
@@ -82,6 +117,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         config = _replace(config, scale=args.scale)
     camera = Camera.preset(args.camera) if args.camera else None
     seq = TumSequence(args.sequence, camera=camera)
+    if args.config:  # the front end must fit the images; name the file when it does not
+        try:
+            config.frontend.check_image_size(seq.camera.width, seq.camera.height)
+        except ConfigError as exc:
+            raise ConfigError(f"{args.config}: {exc}") from exc
     check_output_dir(Path(args.out))
     result = run_sequence(
         seq, args.out, config=config, max_frames=args.max_frames, plots=not args.no_plots, progress=not args.quiet
@@ -110,6 +150,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .pipeline import check_output_dir
     from .simulation import SimulationConfig, run_simulation
 
+    if not args.min_depth < args.max_depth:
+        raise ConfigError(f"--min-depth ({args.min_depth:g} m) must be smaller than --max-depth ({args.max_depth:g} m)")
     out = check_output_dir(Path(args.out))
     cfg = SimulationConfig(
         runs=args.runs, seed=args.seed, weighting=args.weighting, scale=args.scale,
@@ -172,6 +214,7 @@ def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT") -> 
 
 def build_parser() -> argparse.ArgumentParser:
     from .factors import WEIGHTINGS
+    from .simulation import MAX_DEPTH, MAX_POINTS, MAX_RUNS, MIN_PIXEL_SIGMA
 
     parser = argparse.ArgumentParser(
         prog="covo",
@@ -210,17 +253,21 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sim.add_argument("--runs", type=_positive_int, default=1000, metavar="N", help="Monte Carlo runs (default 1000)")
-    sim.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
+    sim.add_argument("--runs", type=_int_in(1, MAX_RUNS), default=1000, metavar="N",
+                     help="Monte Carlo runs (default 1000)")
+    sim.add_argument("--seed", type=_int_in(0), default=0, metavar="S", help="random seed, >= 0 (default 0)")
     sim.add_argument("--weighting", choices=WEIGHTINGS, default="consistent",
                      help="residual weighting (default: consistent)")
     sim.add_argument("--scale", type=_positive_float, default=1.0, metavar="PHI",
                      help="covariance scale phi (thesis: 16; default 1)")
-    sim.add_argument("--pixel-sigma", type=_positive_float, default=8.0, metavar="PX",
+    sim.add_argument("--pixel-sigma", type=_float_in(MIN_PIXEL_SIGMA), default=8.0, metavar="PX",
                      help="pixel noise standard deviation in pixels (default 8)")
-    sim.add_argument("--points", type=_positive_int, default=500, metavar="N", help="points per run (default 500)")
-    sim.add_argument("--min-depth", type=_positive_float, default=0.5, metavar="M", help="nearest depth (default 0.5 m)")
-    sim.add_argument("--max-depth", type=_positive_float, default=5.0, metavar="M", help="farthest depth (default 5 m)")
+    sim.add_argument("--points", type=_int_in(3, MAX_POINTS), default=500, metavar="N",
+                     help="points per run (default 500)")
+    sim.add_argument("--min-depth", type=_float_in(maximum=MAX_DEPTH), default=0.5, metavar="M",
+                     help="nearest depth (default 0.5 m)")
+    sim.add_argument("--max-depth", type=_float_in(maximum=MAX_DEPTH), default=5.0, metavar="M",
+                     help=f"farthest depth (default 5 m, at most {MAX_DEPTH:g} m)")
     _output_arguments(sim, "DIR")
     sim.set_defaults(func=cmd_simulate)
     noise = sub.add_parser(
@@ -234,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     noise.add_argument("sequence", metavar="SEQ_DIR", help="TUM RGB-D sequence folder with groundtruth.txt")
     noise.add_argument("--camera", choices=["fr1", "fr2", "fr3"], help="camera preset (default: from the folder name)")
-    noise.add_argument("--max-frames", type=_positive_int, metavar="N", help="only the first N frames")
+    noise.add_argument("--max-frames", type=_int_in(2), metavar="N", help="only the first N frames (at least 2)")
     noise.add_argument("--pixel-sigma", type=_positive_float, default=2.0, metavar="PX",
                        help="pixel noise used by the outlier gate (default 2)")
     _output_arguments(noise)

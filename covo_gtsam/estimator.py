@@ -31,6 +31,7 @@ from .factors import (
     whitening,
 )
 from .geometry import rigid_fit, rotation_angle
+from .validation import is_real
 
 #: Key of the relative pose in the estimator's graph.
 POSE_KEY = gtsam.symbol("T", 0)
@@ -166,6 +167,56 @@ def marginal_covariance(information: np.ndarray, pose: gtsam.Pose3, key: int = P
     return gtsam.Marginals(linear, values).marginalCovariance(key)
 
 
+def one_line(exc: BaseException) -> str:
+    """The first paragraph of an exception's text on one line (GTSAM's messages span many lines
+    and end in a long explanation and links)."""
+    text = str(exc).strip()
+    return " ".join(text.split("\n\n")[0].split()) or type(exc).__name__
+
+
+def as_pose3(pose, name: str = "pose") -> gtsam.Pose3:
+    """A finite ``gtsam.Pose3`` from a ``Pose3`` or a 4x4 homogeneous matrix (rotation block
+    orthonormal with determinant +1 to 1e-6, last row ``[0 0 0 1]``; the rotation is then
+    re-orthonormalised); :class:`InputError` otherwise."""
+    if isinstance(pose, gtsam.Pose3):
+        T = pose.matrix()
+    else:
+        try:
+            T = np.asarray(pose, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"{name} must be a gtsam.Pose3 or a 4x4 homogeneous matrix, got {pose!r}") from None
+        if T.shape != (4, 4):
+            raise InputError(f"{name} must be a gtsam.Pose3 or a 4x4 homogeneous matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise InputError(f"{name} pose contains NaN or inf")
+    if isinstance(pose, gtsam.Pose3):
+        return pose
+    R = T[:3, :3]
+    if (np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6 or np.abs(R.T @ R - np.eye(3)).max() > 1e-6
+            or np.linalg.det(R) <= 0):
+        raise InputError(f"{name} is not a rigid transform: needs an orthonormal rotation block with "
+                         "determinant +1 and the last row [0 0 0 1]")
+    U, _, Vt = np.linalg.svd(R)
+    return gtsam.Pose3(gtsam.Rot3(U @ Vt), T[:3, 3].copy())
+
+
+def _degeneracy_message(n: int, eig: np.ndarray, X_k: np.ndarray, X_k1: np.ndarray, Q_k: np.ndarray,
+                        Q_k1: np.ndarray) -> str:
+    """Why the information matrix is (nearly) singular: the points' arrangement (collinear or
+    coincident: the second singular value of the centred points of a frame is tiny) or, for
+    well spread points, covariances so large or elongated that some pose direction is almost
+    unconstrained (e.g. pixel noise far above the depth noise)."""
+    ratio = eig[0] / max(eig[-1], 1e-300) if np.all(np.isfinite(eig)) else float("nan")
+    head = f"the {n} point pairs do not constrain all 6 degrees of freedom (information eigenvalue ratio {ratio:.2e})"
+    spreads = [np.linalg.svd(X - X.mean(axis=0), compute_uv=False) for X in (X_k, X_k1)]
+    if any(sv[1] <= 1e-6 * max(sv[0], 1e-300) or sv[0] <= 1e-9 for sv in spreads):
+        return head + ": the points are collinear or coincident"
+    sd = np.sqrt(np.maximum(np.linalg.eigvalsh(np.concatenate([Q_k, Q_k1])), 0.0))
+    return (head + ": the points are spread out, but their covariances are so large or elongated that the "
+            f"problem is ill-conditioned (point standard deviations {sd.min():.2g} m to {sd.max():.2g} m; "
+            "e.g. pixel noise far too large for the depth noise)")
+
+
 def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
@@ -196,7 +247,8 @@ def estimate_relative_pose(
         Q_k, Q_k1: (N, 3, 3) their covariances (m^2), symmetric positive definite.
         weighting: ``"consistent"`` (default) or ``"thesis"`` (4.16); see :mod:`covo_gtsam.factors`.
         scale: phi, multiplies the returned covariance (thesis uses 16; default 1).
-        initial: initial guess of T_k,k1; a weighted closed-form rigid fit if None.
+        initial: initial guess of T_k,k1, a ``gtsam.Pose3`` or a 4x4 homogeneous matrix; a
+            weighted closed-form rigid fit if None.
         max_iterations: Levenberg-Marquardt iterations per pass.
         max_reweights: passes of the ``consistent`` weighting, each re-evaluating the residual
             covariances at the latest rotation until it changes by less than ``reweight_tol`` rad.
@@ -208,23 +260,27 @@ def estimate_relative_pose(
             ``max(1, chi2 / (3N - 6))`` of the fit (adaptive pixel noise; never shrinks it).
 
     Raises:
-        InputError: wrong shapes, NaN/inf, non-symmetric or non-positive-definite covariances.
+        InputError: wrong shapes, NaN/inf, non-symmetric or non-positive-definite covariances, an
+            ``initial`` that is not a finite rigid transform.
         InsufficientPairsError: fewer than 3 pairs.
         DegenerateGeometryError: the pairs do not constrain all 6 degrees of freedom.
         CovarianceError: GTSAM could not compute a valid marginal covariance.
     """
     if weighting not in WEIGHTINGS:
         raise InputError(f"unknown weighting {weighting!r}; choose one of {WEIGHTINGS}")
-    if not (np.isfinite(scale) and scale > 0):
+    if not (is_real(scale) and np.isfinite(scale) and scale > 0):
         raise InputError(f"scale must be a positive finite number, got {scale!r}")
     X_k, X_k1, Q_k, Q_k1 = validate_inputs(X_k, X_k1, Q_k, Q_k1)
     n = X_k.shape[0]
     if n < 3:
         raise InsufficientPairsError(f"need at least 3 point pairs, got {n}")
 
-    pose = initial_guess(X_k, X_k1, Q_k, Q_k1) if initial is None else initial
-    if not np.all(np.isfinite(pose.matrix())):
-        raise DegenerateGeometryError("the closed-form initial fit is not finite")
+    if initial is None:
+        pose = initial_guess(X_k, X_k1, Q_k, Q_k1)
+        if not np.all(np.isfinite(pose.matrix())):
+            raise DegenerateGeometryError("the closed-form initial fit is not finite")
+    else:
+        pose = as_pose3(initial, "initial")
 
     if robust not in ROBUST_KERNELS:
         raise InputError(f"unknown robust kernel {robust!r}; choose one of {ROBUST_KERNELS}")
@@ -247,7 +303,7 @@ def estimate_relative_pose(
             optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, _lm_params(max_iterations))
             solution = optimizer.optimize()
         except RuntimeError as exc:
-            raise DegenerateGeometryError(f"Levenberg-Marquardt failed: {exc}") from exc
+            raise DegenerateGeometryError(f"Levenberg-Marquardt failed: {one_line(exc)}") from exc
         iterations += optimizer.iterations()
         pose = solution.atPose3(POSE_KEY)
         if not np.all(np.isfinite(pose.matrix())):
@@ -264,14 +320,11 @@ def estimate_relative_pose(
     information = J.T @ J
     eig = np.linalg.eigvalsh(information)
     if not np.all(np.isfinite(eig)) or eig[0] <= MIN_INFO_RATIO * max(eig[-1], 1e-300):
-        raise DegenerateGeometryError(
-            f"the {n} point pairs do not constrain all 6 degrees of freedom "
-            f"(information eigenvalue ratio {eig[0] / max(eig[-1], 1e-300):.2e}); collinear or coincident points?"
-        )
+        raise DegenerateGeometryError(_degeneracy_message(n, eig, X_k, X_k1, Q_k, Q_k1))
     try:
         marginal = marginal_covariance(information, pose)
     except (RuntimeError, np.linalg.LinAlgError) as exc:
-        raise CovarianceError(f"GTSAM could not compute the marginal covariance: {exc}") from exc
+        raise CovarianceError(f"GTSAM could not compute the marginal covariance: {one_line(exc)}") from exc
     cov = scale * 0.5 * (marginal + marginal.T)
     dof = 3 * n - 6
     chi2_per_dof = float(e @ e) / dof if dof > 0 else float("nan")

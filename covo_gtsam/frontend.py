@@ -39,6 +39,7 @@ from .errors import ConfigError, InputError
 from .factors import residual_covariances
 from .geometry import make_pose, rigid_fit
 from .noise import PointNoiseModel, surface_angles
+from .validation import check_choice, check_int, check_real, is_int, is_real
 
 OUTLIER_REJECTIONS = ("rigid3d", "homography", "none")
 #: chi-square(3) 99 % quantile: default gate of the Mahalanobis inlier test.
@@ -54,6 +55,16 @@ RANSAC_CHUNK = 400_000
 RANSAC_BATCH = 25
 #: Probability that the rigid RANSAC has drawn at least one all-inlier sample when it stops early.
 RANSAC_CONFIDENCE = 0.999
+#: Default RANSAC hypotheses / iterations: ``FrontendConfig.ransac_iterations`` and the default of
+#: :func:`ransac_rigid3d` and :func:`ransac_homography`.
+RANSAC_ITERATIONS = 200
+#: Upper limits of the front-end settings (memory: ORB reserves ``n_features`` keypoints, the
+#: rigid RANSAC draws all its samples at once; a patch must fit in the image, see
+#: :meth:`FrontendConfig.check_image_size`).
+MAX_FEATURES = 1_000_000
+MAX_LEVELS = 64
+MAX_PATCH_SIZE = 1024
+MAX_RANSAC_ITERATIONS = 1_000_000
 
 
 # --------------------------------------------------------------------------------------------
@@ -76,6 +87,13 @@ class FrontendConfig:
         min_depth, max_depth: valid depth range (metres).
         min_pairs: fewest point pairs a frame pair needs (checked by the caller, e.g. odometry).
         max_hamming: optional absolute cut on the Hamming distance, applied after ``keep_ratio``.
+
+    Every value is type- and range-checked (:class:`ConfigError` naming the field): integers
+    must be integers, numbers real numbers (not booleans); ``1 < scale_factor <= 2``,
+    ``0 <= fast_threshold <= 255``, ``2 <= patch_size``, and upper limits (:data:`MAX_FEATURES`,
+    :data:`MAX_LEVELS`, :data:`MAX_PATCH_SIZE`, :data:`MAX_RANSAC_ITERATIONS`) that keep OpenCV
+    and the RANSAC within memory. Whether the pyramid and patch fit a given image size is checked
+    by :meth:`check_image_size`.
     """
 
     n_features: int = 1000
@@ -87,7 +105,7 @@ class FrontendConfig:
     keep_ratio: float = 0.75
     outlier_rejection: str = "rigid3d"
     ransac_px: float = 10.0
-    ransac_iterations: int = 200
+    ransac_iterations: int = RANSAC_ITERATIONS
     ransac_chi2: float = CHI2_3DOF_99
     seed: int = 0
     min_depth: float = 0.5
@@ -96,36 +114,46 @@ class FrontendConfig:
     max_hamming: int | None = None
 
     def __post_init__(self) -> None:
-        def positive_int(name: str, minimum: int = 1) -> None:
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < minimum:
-                raise ConfigError(f"frontend.{name} must be an integer >= {minimum}, got {v!r}")
-
-        for name in ("n_features", "n_levels", "ransac_iterations"):
-            positive_int(name)
-        positive_int("fast_threshold", 0)
-        positive_int("patch_size", 2)
-        positive_int("min_pairs", 3)
-        positive_int("seed", 0)
-        if self.wta_k not in (2, 3, 4):
+        for name, lo, hi in (("n_features", 1, MAX_FEATURES), ("n_levels", 1, MAX_LEVELS),
+                             ("fast_threshold", 0, 255), ("patch_size", 2, MAX_PATCH_SIZE),
+                             ("ransac_iterations", 1, MAX_RANSAC_ITERATIONS), ("min_pairs", 3, None),
+                             ("seed", 0, None)):
+            check_int(f"frontend.{name}", getattr(self, name), lo, hi)
+        if not (is_int(self.wta_k) and self.wta_k in (2, 3, 4)):
             raise ConfigError(f"frontend.wta_k must be 2, 3 or 4, got {self.wta_k!r}")
-        if not (isinstance(self.scale_factor, (int, float)) and self.scale_factor > 1.0):
-            raise ConfigError(f"frontend.scale_factor must be > 1, got {self.scale_factor!r}")
-        if not (isinstance(self.keep_ratio, (int, float)) and 0.0 < self.keep_ratio <= 1.0):
-            raise ConfigError(f"frontend.keep_ratio must be in (0, 1], got {self.keep_ratio!r}")
-        if self.outlier_rejection not in OUTLIER_REJECTIONS:
-            raise ConfigError(
-                f"frontend.outlier_rejection must be one of {OUTLIER_REJECTIONS}, got {self.outlier_rejection!r}")
+        # OpenCV's ORB: scaleFactor < 1 fails, 1 finds nothing; above 2 levels skip pixels (aliasing).
+        if not (is_real(self.scale_factor) and 1.0 < self.scale_factor <= 2.0):
+            raise ConfigError(f"frontend.scale_factor must be a number > 1 and <= 2, got {self.scale_factor!r}")
+        if not (is_real(self.keep_ratio) and 0.0 < self.keep_ratio <= 1.0):
+            raise ConfigError(f"frontend.keep_ratio must be a number in (0, 1], got {self.keep_ratio!r}")
+        check_choice("frontend.outlier_rejection", self.outlier_rejection, OUTLIER_REJECTIONS)
         for name in ("ransac_px", "ransac_chi2"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"frontend.{name} must be a positive number, got {v!r}")
-        if not (isinstance(self.min_depth, (int, float)) and isinstance(self.max_depth, (int, float))
-                and 0.0 <= self.min_depth < self.max_depth):
+            check_real(f"frontend.{name}", getattr(self, name), "positive")
+        check_real("frontend.min_depth", self.min_depth, "non-negative")
+        check_real("frontend.max_depth", self.max_depth, "positive", finite=False)
+        if not self.min_depth < self.max_depth:
             raise ConfigError(
                 f"frontend depth range needs 0 <= min_depth < max_depth, got [{self.min_depth!r}, {self.max_depth!r}]")
         if self.max_hamming is not None:
-            positive_int("max_hamming", 0)
+            check_int("frontend.max_hamming", self.max_hamming, 0)
+
+    def check_image_size(self, width: int, height: int) -> None:
+        """Raise :class:`ConfigError` when ORB with these settings cannot work on ``width`` x
+        ``height`` images: the smallest pyramid level, ``1 / scale_factor ** (n_levels - 1)`` of
+        the image, must keep at least one pixel (OpenCV fails otherwise), and keypoints, which
+        ORB keeps ``patch_size`` pixels (its edge threshold) from the border, need
+        ``2 * patch_size < min(width, height)``."""
+        short = min(int(width), int(height))
+        shrink = float(self.scale_factor) ** (int(self.n_levels) - 1)
+        if shrink > short:
+            raise ConfigError(
+                f"frontend.n_levels {self.n_levels} with frontend.scale_factor {self.scale_factor:g} shrinks the "
+                f"smallest ORB pyramid level of {width}x{height} images below one pixel "
+                f"(scale_factor ** (n_levels - 1) = {shrink:.4g} must be <= {short})")
+        if 2 * self.patch_size >= short:
+            raise ConfigError(
+                f"frontend.patch_size {self.patch_size} leaves no room for keypoints in {width}x{height} images "
+                f"(ORB keeps them patch_size pixels from the border; needs 2 * patch_size < {short})")
 
 
 def make_orb(cfg: FrontendConfig | None = None) -> cv2.ORB:
@@ -676,7 +704,7 @@ def ransac_rigid3d(
     X_cur: np.ndarray,
     Q_ref: np.ndarray,
     Q_cur: np.ndarray,
-    iterations: int = 200,
+    iterations: int = RANSAC_ITERATIONS,
     chi2: float = CHI2_3DOF_99,
     seed: int | np.random.Generator = 0,
     refits: int = 10,
@@ -778,7 +806,7 @@ def ransac_rigid3d(
 
 
 def ransac_homography(uv_ref: np.ndarray, uv_cur: np.ndarray, threshold_px: float = 10.0,
-                      iterations: int = 2000) -> np.ndarray:
+                      iterations: int = RANSAC_ITERATIONS) -> np.ndarray:
     """Inlier mask (N,) of ``cv2.findHomography(uv_cur, uv_ref, RANSAC, threshold_px)``.
 
     (The thesis's C++ outlier rejection.) Fewer than 4 pairs or no homography found: no inliers.

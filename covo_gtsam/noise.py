@@ -22,6 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from .camera import Camera
+from .errors import InputError
 
 _HALF_PI = np.pi / 2.0
 #: Angles are clipped below 90 deg so the hyperbolic terms stay finite (radians).
@@ -47,6 +48,10 @@ class KinectAxialNoise:
 
     ``sigma_Z = a + b (Z - z0)^2`` metres, plus ``c / sqrt(Z) * theta^2 / (pi/2 - theta)^2``
     for ``theta > theta_max`` (60 deg). Below 10 deg the 10-60 deg fit is used unchanged.
+
+    The model is defined for measured depths ``Z > 0`` only: zero, negative or non-finite depths
+    are no measurement (a depth camera reports 0; the front end drops such keypoints) and raise
+    :class:`~covo_gtsam.errors.InputError`.
     """
 
     a: float = 0.0012
@@ -57,10 +62,18 @@ class KinectAxialNoise:
 
     def sigma(self, z: np.ndarray, theta: np.ndarray | float = 0.0) -> np.ndarray:
         z = np.asarray(z, dtype=float)
+        bad = ~(np.isfinite(z) & (z > 0))
+        if np.any(bad):
+            raise InputError(
+                f"depth must be positive and finite (metres), got {int(np.count_nonzero(bad))} invalid "
+                f"value(s), e.g. {float(z[bad].flat[0])!r}; invalid depths are no measurement and have no noise")
         theta = np.minimum(np.broadcast_to(np.asarray(theta, dtype=float), z.shape), MAX_THETA)
         s = self.a + self.b * (z - self.z0) ** 2
         steep = theta > self.theta_max
-        extra = self.c / np.sqrt(z) * theta**2 / (_HALF_PI - theta) ** 2
+        if not np.any(steep):
+            return np.asarray(s)
+        th = np.where(steep, theta, 0.0)  # the extra term only where it applies
+        extra = self.c / np.sqrt(z) * th**2 / (_HALF_PI - th) ** 2
         return np.where(steep, s + extra, s)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,6 +25,7 @@ from .factors import WEIGHTINGS
 from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 from .rolling_shutter import compensate_pair
+from .validation import check_bool, check_choice, check_int, check_real
 
 
 #: Step statuses that carry a pose (``OdometryStep.tracked``).
@@ -69,6 +71,11 @@ class OdometryConfig:
     After ``restart_after`` consecutive lost frames the last tracked frame is usually out of
     view, so the next frame that cannot be matched to it starts a new segment instead of being
     lost (status ``"restart"``, see :class:`OdometryStep`).
+
+    Every field is type- and range-checked, :class:`ConfigError` naming it: flags must be real
+    booleans (the string ``"false"`` is not), numbers real numbers (not booleans),
+    ``restart_after`` an integer, ``keyframe_ratio`` in (0, 1], and ``frontend`` a
+    :class:`FrontendConfig` (a table of its settings in :meth:`from_dict`).
     """
 
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
@@ -91,23 +98,21 @@ class OdometryConfig:
     rolling_shutter_s: float = 0.025
 
     def __post_init__(self) -> None:
-        if self.robust in ("", "none"):  # TOML has no null
+        if not isinstance(self.frontend, FrontendConfig):
+            raise ConfigError(f"frontend must be a FrontendConfig, got {self.frontend!r}")
+        if isinstance(self.robust, str) and self.robust in ("", "none"):  # TOML has no null
             object.__setattr__(self, "robust", None)
         choices = {"weighting": WEIGHTINGS, "robust": ROBUST_KERNELS, "motion_model": MOTION_MODELS}
         for name, allowed in choices.items():
-            if getattr(self, name) not in allowed:
-                raise ConfigError(f"unknown {name} {getattr(self, name)!r}; choose one of {allowed}")
+            check_choice(name, getattr(self, name), allowed)
+        for name in ("pixel_sigma_by_level", "use_surface_angle", "keyframes", "variance_factor"):
+            check_bool(name, getattr(self, name))
         positive = ("pixel_sigma", "scale", "depth_scale", "keyframe_ratio", "max_rotation_deg", "max_translation_m")
         for name in positive + ("frame_sigma_rot_deg", "frame_sigma_trans_m", "rolling_shutter_s"):
-            value = getattr(self, name)
-            strict = name in positive
-            numeric = isinstance(value, (int, float)) and np.isfinite(value)
-            if not (numeric and (value > 0 if strict else value >= 0)):
-                kind = "positive" if strict else "non-negative"
-                raise ConfigError(f"{name} must be a {kind} number, got {value!r}")
-        r = self.restart_after
-        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
-            raise ConfigError(f"restart_after must be an integer >= 1, got {r!r}")
+            check_real(name, getattr(self, name), "positive" if name in positive else "non-negative")
+        if self.keyframe_ratio > 1:
+            raise ConfigError(f"keyframe_ratio must be a number in (0, 1], got {self.keyframe_ratio!r}")
+        check_int("restart_after", self.restart_after, 1)
 
     def gap_noise(self) -> np.ndarray:
         """6x6 covariance of the unknown motion across a tracking gap (tangent [omega, v]):
@@ -128,11 +133,19 @@ class OdometryConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "OdometryConfig":
         """Build from a plain mapping, e.g. a parsed TOML/JSON file; a ``frontend`` table sets the front end."""
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"the configuration must be a table/object of settings, got {d!r}")
         d = dict(d)
-        fe = d.pop("frontend", {}) or {}
+        fe = d.pop("frontend", None)
+        if isinstance(fe, FrontendConfig):
+            fe = dataclasses.asdict(fe)
+        elif fe is None:
+            fe = {}
+        elif not isinstance(fe, Mapping):
+            raise ConfigError(f"frontend must be a table/object of front-end settings, got {fe!r}")
         names = {f.name for f in dataclasses.fields(cls)} - {"frontend"}
         fe_names = {f.name for f in dataclasses.fields(FrontendConfig)}
-        unknown = sorted(set(d) - names) + sorted(f"frontend.{k}" for k in set(fe) - fe_names)
+        unknown = sorted(map(str, set(d) - names)) + sorted(f"frontend.{k}" for k in set(fe) - fe_names)
         if unknown:
             raise ConfigError(f"unknown configuration keys: {', '.join(unknown)}")
         try:
@@ -184,9 +197,15 @@ class VisualOdometry:
     >>> step = vo.register_frame(colour, depth_raw, timestamp)   # doctest: +SKIP
     """
 
-    def __init__(self, camera: Camera, config: OdometryConfig | None = None) -> None:
-        self.camera = camera
+    def __init__(self, camera: Camera | str, config: OdometryConfig | None = None) -> None:
+        """``camera``: a :class:`Camera` or a preset name (``"fr1"``). Raises :class:`ConfigError`
+        for anything else, a ``config`` that is not an :class:`OdometryConfig`, or front-end
+        settings that do not fit the camera's image size (:meth:`FrontendConfig.check_image_size`)."""
+        self.camera = Camera.resolve(camera)
+        if config is not None and not isinstance(config, OdometryConfig):
+            raise ConfigError(f"config must be an OdometryConfig (see OdometryConfig.from_dict), got {config!r}")
         self.config = config or OdometryConfig()
+        self.config.frontend.check_image_size(self.camera.width, self.camera.height)
         self._orb_local = threading.local()  # one ORB detector per thread (see prepare)
         self._noise = self.config.noise_model()
         self._frame_noise = self.config.frame_noise()
@@ -234,8 +253,16 @@ class VisualOdometry:
         ``image`` may also be a :class:`FrameData` from :meth:`prepare` (then ``depth`` is
         ignored), which lets a caller compute features on another thread. A frame that cannot be
         tracked is reported lost and the next frame is matched to the last tracked one.
+
+        ``timestamp`` (seconds) must be finite and not earlier than that of the previous frame
+        (registered or marked lost); an equal one is accepted (some datasets repeat stamps): such
+        a pair has no velocity, so no motion prediction or rolling-shutter compensation.
+
+        Raises:
+            InputError: the timestamp is not a finite number or goes back in time (the frame is
+                not recorded).
         """
-        timestamp = float(timestamp)
+        timestamp = self._check_timestamp(timestamp)
         try:
             frame = image if isinstance(image, FrameData) else self.prepare(image, depth)
         except CovoError as exc:
@@ -350,8 +377,25 @@ class VisualOdometry:
         return self._record(step)
 
     def mark_lost(self, timestamp: float, reason: str) -> OdometryStep:
-        """Report a frame that could not be used at all (e.g. an unreadable file)."""
-        return self._record(OdometryStep(float(timestamp), "lost", reason=reason))
+        """Report a frame that could not be used at all (e.g. an unreadable file); ``timestamp``
+        is checked as in :meth:`register_frame`."""
+        return self._record(OdometryStep(self._check_timestamp(timestamp), "lost", reason=reason))
+
+    def _check_timestamp(self, timestamp) -> float:
+        """``timestamp`` as float; InputError unless finite and >= the previous frame's."""
+        if isinstance(timestamp, (str, bytes, bool, np.bool_)):
+            raise InputError(f"timestamp must be a number (seconds), got {timestamp!r}")
+        try:
+            t = float(timestamp)
+        except (TypeError, ValueError):
+            raise InputError(f"timestamp must be a number (seconds), got {timestamp!r}") from None
+        if not np.isfinite(t):
+            raise InputError(f"timestamp must be finite, got {t!r}")
+        if self.steps and t < self.steps[-1].timestamp:
+            raise InputError(
+                f"timestamp {t!r} is earlier than the previous frame's {self.steps[-1].timestamp!r}; "
+                "frames must be registered in time order")
+        return t
 
     def _record(self, step: OdometryStep) -> OdometryStep:
         self._lost_run = 0 if step.tracked else self._lost_run + 1

@@ -34,6 +34,7 @@ from .errors import CovoError, DatasetError
 from .frontend import FrameData, load_depth, load_grey
 from .io import RelativePoseWriter, TrajectoryWriter, write_json
 from .odometry import OdometryConfig, OdometryStep, VisualOdometry
+from .validation import check_int
 
 
 #: Frames decoded and prepared ahead on worker threads.
@@ -79,16 +80,24 @@ def run_sequence(
     seq: TumSequence,
     out_dir: str | os.PathLike,
     config: OdometryConfig | None = None,
-    camera: Camera | None = None,
+    camera: Camera | str | None = None,
     max_frames: int | None = None,
     plots: bool = True,
     progress: bool = True,
 ) -> RunResult:
-    """Run :class:`VisualOdometry` over ``seq`` and write the results folder."""
+    """Run :class:`VisualOdometry` over ``seq`` and write the results folder.
+
+    ``camera`` (a :class:`Camera` or preset name) overrides ``seq.camera``; ``max_frames`` (an
+    integer >= 1, or None for all) limits the frames processed.
+
+    Raises:
+        ConfigError: an invalid ``max_frames``, ``camera`` or ``config``.
+    """
+    if max_frames is not None:
+        check_int("max_frames", max_frames, 1)
     config = config or OdometryConfig()
+    vo = VisualOdometry(seq.camera if camera is None else camera, config)
     out = check_output_dir(Path(out_dir))
-    camera = camera or seq.camera
-    vo = VisualOdometry(camera, config)
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     start = time.perf_counter()
 

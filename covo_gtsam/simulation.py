@@ -19,17 +19,38 @@ import gtsam
 import numpy as np
 
 from .camera import Camera
-from .errors import EstimationError
+from .errors import ConfigError, EstimationError
 from .estimator import estimate_relative_pose
+from .factors import WEIGHTINGS
 from .geometry import pose_from_tum
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
+from .validation import check_choice, check_int, check_real, is_real
 
 #: The thesis's motion, TUM order tx ty tz qx qy qz qw (quaternion normalised on use).
 THESIS_MOTION = (0.6, 0.6, 0.05, -0.183, -0.183, 0.0, 0.966)
 
 
+#: Limits of :class:`SimulationConfig` (memory: (runs, 6, 6) covariances and (6 N, 6) Jacobians;
+#: below 0.01 px the propagated 3x3 point covariances are no longer numerically positive definite;
+#: beyond 100 m the Kinect depth model's sigma exceeds 19 m and is meaningless).
+MAX_RUNS = 1_000_000
+MAX_POINTS = 100_000
+MIN_PIXEL_SIGMA = 0.01
+MAX_DEPTH = 100.0
+
+
 @dataclass(frozen=True)
 class SimulationConfig:
+    """Settings of :func:`run_simulation`; every value is type- and range-checked
+    (:class:`ConfigError` naming the field).
+
+    ``runs`` (1 to :data:`MAX_RUNS`), ``seed`` (integer >= 0), ``num_points`` (3 to
+    :data:`MAX_POINTS`), ``pixel_sigma`` (pixels, >= :data:`MIN_PIXEL_SIGMA`), ``depth_range``
+    ``(min, max)`` metres with ``0 < min < max <= MAX_DEPTH``, ``weighting``, ``scale`` (> 0),
+    ``motion`` (``tx ty tz qx qy qz qw``), ``camera`` (a preset name) and ``depth_model`` (with a
+    ``sigma(z, theta)`` method).
+    """
+
     runs: int = 1000
     seed: int = 0
     num_points: int = 500
@@ -40,6 +61,33 @@ class SimulationConfig:
     motion: tuple[float, ...] = THESIS_MOTION
     camera: str = "fr1"
     depth_model: KinectAxialNoise = field(default_factory=KinectAxialNoise)
+
+    def __post_init__(self) -> None:
+        check_int("runs", self.runs, 1, MAX_RUNS)
+        check_int("seed", self.seed, 0)
+        check_int("num_points", self.num_points, 3, MAX_POINTS)
+        check_real("pixel_sigma", self.pixel_sigma, "positive", minimum=MIN_PIXEL_SIGMA)
+        check_real("scale", self.scale, "positive")
+        check_choice("weighting", self.weighting, WEIGHTINGS)
+        try:
+            zmin, zmax = self.depth_range
+        except (TypeError, ValueError):
+            raise ConfigError(
+                f"depth_range must be a pair (min, max) of depths in metres, got {self.depth_range!r}") from None
+        check_real("depth_range min", zmin, "positive")
+        check_real("depth_range max", zmax, "positive", maximum=MAX_DEPTH)
+        if not zmin < zmax:
+            raise ConfigError(f"depth_range needs min < max, got ({zmin!r}, {zmax!r})")
+        motion = np.asarray(self.motion, dtype=object).reshape(-1)
+        if motion.shape != (7,) or not all(is_real(v) and np.isfinite(v) for v in motion):
+            raise ConfigError(f"motion must be 7 finite numbers tx ty tz qx qy qz qw, got {self.motion!r}")
+        if not np.linalg.norm(np.asarray(motion[3:], dtype=float)) > 1e-9:
+            raise ConfigError(f"motion's quaternion qx qy qz qw must not be zero, got {self.motion!r}")
+        if not isinstance(self.camera, str):
+            raise ConfigError(f"camera must be a preset name, got {self.camera!r}")
+        Camera.preset(self.camera)
+        if not callable(getattr(self.depth_model, "sigma", None)):
+            raise ConfigError(f"depth_model must have a sigma(z, theta) method, got {self.depth_model!r}")
 
 
 @dataclass(frozen=True)
@@ -74,20 +122,33 @@ def make_scene(cfg: SimulationConfig, rng: np.random.Generator) -> Scene:
             break
     X0 = np.concatenate(chunks)[: cfg.num_points]
     if X0.shape[0] < cfg.num_points:
-        raise EstimationError("could not place the requested points in view of both cameras")
+        raise EstimationError(
+            f"could not place {cfg.num_points} points in view of both cameras with depths in "
+            f"[{zmin:g}, {zmax:g}] m under the simulated motion; widen the depth range")
     return Scene(X0=X0, X1=(X0 - t) @ R, T01=T01, camera=camera)
 
 
 def noisy_measurements(
     X: np.ndarray, camera: Camera, model: PointNoiseModel, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Noisy back-projected points (N, 3) and their covariances (N, 3, 3) at the noisy measurement."""
+    """Noisy back-projected points (N, 3) and their covariances (N, 3, 3) at the noisy measurement.
+
+    A noisy depth <= 0 (possible when the depth noise is large) is no measurement, as a depth
+    camera reports 0 and the front end drops the keypoint: its rows are NaN (points and
+    covariances); :func:`run_simulation` drops such pairs.
+    """
     uv = camera.project(X)
     z = X[:, 2]
     n = X.shape[0]
     uv_n = uv + rng.standard_normal((n, 2)) * [model.pixel.sigma_u, model.pixel.sigma_v]
     z_n = z + rng.standard_normal(n) * model.depth.sigma(z)
-    return camera.backproject(uv_n, z_n), model.point_covariances(camera, uv_n, z_n)
+    valid = z_n > 0
+    if valid.all():
+        return camera.backproject(uv_n, z_n), model.point_covariances(camera, uv_n, z_n)
+    points, covs = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
+    points[valid] = camera.backproject(uv_n[valid], z_n[valid])
+    covs[valid] = model.point_covariances(camera, uv_n[valid], z_n[valid])
+    return points, covs
 
 
 @dataclass
@@ -98,6 +159,7 @@ class SimulationResult:
     nees_rotation: np.ndarray  # (runs,)
     nees_translation: np.ndarray  # (runs,)
     iterations: np.ndarray  # (runs,)
+    dropped_pairs: np.ndarray | None = None  # (runs,) pairs without a measurement (noisy depth <= 0)
 
     @property
     def anees_rotation(self) -> float:
@@ -144,6 +206,7 @@ class SimulationResult:
             "share_within_1sigma": dict(zip(axes, within1.tolist())),
             "share_within_3sigma": dict(zip(axes, within3.tolist())),
             "mean_iterations": float(np.mean(self.iterations)),
+            "dropped_pairs": 0 if self.dropped_pairs is None else int(np.sum(self.dropped_pairs)),
         }
 
 
@@ -156,6 +219,7 @@ def run_simulation(cfg: SimulationConfig, progress: bool = False) -> SimulationR
     errors = np.empty((cfg.runs, 6))
     covs = np.empty((cfg.runs, 6, 6))
     iters = np.empty(cfg.runs, dtype=int)
+    dropped = np.zeros(cfg.runs, dtype=int)
     runs = range(cfg.runs)
     if progress:
         from tqdm import tqdm
@@ -164,10 +228,14 @@ def run_simulation(cfg: SimulationConfig, progress: bool = False) -> SimulationR
     for i in runs:
         X0, Q0 = noisy_measurements(scene.X0, scene.camera, model, rng)
         X1, Q1 = noisy_measurements(scene.X1, scene.camera, model, rng)
+        measured = np.isfinite(X0[:, 2]) & np.isfinite(X1[:, 2])  # noisy depth <= 0: no measurement
+        if not measured.all():
+            dropped[i] = int(np.count_nonzero(~measured))
+            X0, Q0, X1, Q1 = X0[measured], Q0[measured], X1[measured], Q1[measured]
         res = estimate_relative_pose(X0, X1, Q0, Q1, weighting=cfg.weighting, scale=cfg.scale)
         errors[i] = gtsam.Pose3.Logmap(res.pose.between(T_true))
         covs[i] = res.covariance
         iters[i] = res.iterations
     nees_rot = np.einsum("ni,ni->n", errors[:, :3], np.linalg.solve(covs[:, :3, :3], errors[:, :3, None])[..., 0])
     nees_tr = np.einsum("ni,ni->n", errors[:, 3:], np.linalg.solve(covs[:, 3:, 3:], errors[:, 3:, None])[..., 0])
-    return SimulationResult(cfg, errors, covs, nees_rot, nees_tr, iters)
+    return SimulationResult(cfg, errors, covs, nees_rot, nees_tr, iters, dropped)

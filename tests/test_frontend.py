@@ -99,10 +99,34 @@ def test_config_defaults_follow_thesis_table_a2():
     {"keep_ratio": 0.0}, {"keep_ratio": 1.5}, {"outlier_rejection": "ransac"}, {"wta_k": 5},
     {"min_depth": 5.0, "max_depth": 1.0}, {"ransac_chi2": -1.0}, {"n_features": 0}, {"scale_factor": 1.0},
     {"max_hamming": -3}, {"ransac_iterations": 2.5},
+    # beyond what OpenCV's ORB accepts (crash, wrap-around or out of memory) or not of the field's type
+    {"scale_factor": 1e300}, {"scale_factor": 0.5}, {"scale_factor": float("inf")}, {"n_levels": 0},
+    {"n_levels": 100000}, {"patch_size": 100000}, {"patch_size": 1}, {"fast_threshold": 256},
+    {"n_features": 2**31 - 1}, {"ransac_iterations": 10**12}, {"wta_k": 2.0}, {"wta_k": True},
+    {"keep_ratio": True}, {"n_features": True}, {"ransac_px": True}, {"min_depth": "0"}, {"max_hamming": True},
 ])
 def test_config_rejects_invalid_values(kwargs):
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError) as info:
         fe.FrontendConfig(**kwargs)
+    assert any(f"frontend.{k}" in str(info.value) or k in str(info.value) for k in kwargs)
+
+
+def test_config_pyramid_and_patch_checked_against_the_image_size():
+    fe.FrontendConfig().check_image_size(640, 480)
+    fe.FrontendConfig(n_levels=9, scale_factor=2.0).check_image_size(640, 480)  # smallest level 2x2 px
+    with pytest.raises(ConfigError, match="n_levels"):
+        fe.FrontendConfig(n_levels=11, scale_factor=2.0).check_image_size(640, 480)  # OpenCV's resize fails
+    with pytest.raises(ConfigError, match="patch_size"):
+        fe.FrontendConfig(patch_size=240).check_image_size(640, 480)  # ORB finds no keypoint at all
+    fe.FrontendConfig(patch_size=239).check_image_size(640, 480)
+
+
+def test_ransac_defaults_are_the_config_default():
+    import inspect
+
+    iterations = fe.FrontendConfig().ransac_iterations
+    for f in (fe.ransac_homography, fe.ransac_rigid3d):
+        assert inspect.signature(f).parameters["iterations"].default == iterations
 
 
 def test_make_orb_parameters():

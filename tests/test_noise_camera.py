@@ -56,6 +56,22 @@ def test_axial_noise_hand_values():
     assert m.sigma(np.array([2.0]), th)[0] == pytest.approx(expected)
 
 
+def test_axial_noise_rejects_invalid_depths_without_warnings():
+    import warnings
+
+    from covo_gtsam.errors import InputError
+
+    m = KinectAxialNoise()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # np.sqrt of a negative depth warned before
+        s = m.sigma(np.array([0.5, 2.0, 4.0]), np.deg2rad([0.0, 70.0, 89.5]))
+        assert np.all(np.isfinite(s)) and s[1] > m.sigma(np.array([2.0]))[0]
+        assert m.sigma(1.0).shape == ()
+        for bad in ([-0.3], [1.0, 0.0], [np.nan], [np.inf]):
+            with pytest.raises(InputError, match="depth must be positive"):
+                m.sigma(np.array(bad), np.deg2rad(70.0))
+
+
 def test_lateral_noise_hand_values():
     m = KinectLateralNoise()
     assert m.sigma(0.0) == pytest.approx(0.8)

@@ -15,7 +15,7 @@ import pytest
 
 from covo_gtsam.camera import Camera
 from covo_gtsam.cli import main
-from covo_gtsam.errors import CovoError, DegenerateGeometryError
+from covo_gtsam.errors import CovoError, DegenerateGeometryError, InputError
 from covo_gtsam.estimator import estimate_relative_pose
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
 from covo_gtsam.odometry import VisualOdometry
@@ -92,7 +92,16 @@ def test_cli_listed_file_missing(small_seq, tmp_path):
                                             ('{"motion_model": "fast"}', "unknown motion_model"),
                                             ('{"pixel_sigma": -1}', "pixel_sigma must be a positive"),
                                             ('{"frame_sigma_trans_m": "x"}', "frame_sigma_trans_m must be"),
-                                            ('{"restart_after": 0}', "restart_after must be")])
+                                            ('{"restart_after": 0}', "restart_after must be"),
+                                            ('{"frontend": 5}', "frontend must be a table"),
+                                            ('{"frontend": "abc"}', "frontend must be a table"),
+                                            ('{"keyframes": "false"}', "keyframes must be true or false"),
+                                            ('{"pixel_sigma": true}', "pixel_sigma must be a positive"),
+                                            ('{"frontend": {"scale_factor": 1e300}}', "frontend.scale_factor"),
+                                            ('{"frontend": {"n_levels": 100000}}', "frontend.n_levels"),
+                                            ('{"frontend": {"patch_size": 100000}}', "frontend.patch_size"),
+                                            ('{"frontend": {"n_levels": 40, "scale_factor": 2}}', "pyramid"),
+                                            ('{"frontend": {"patch_size": 300}}', "frontend.patch_size 300")])
 def test_cli_bad_config(small_seq, tmp_path, content, needle):
     cfg = tmp_path / "cfg.json"
     if content is not None:
@@ -274,3 +283,269 @@ def test_rerun_without_ground_truth_removes_stale_plots(small_seq, tmp_path):
     assert main(["run", str(small_seq), "--out", str(out), "--quiet"]) == 0
     assert (out / "plots" / "trajectory.png").exists()
     assert not (out / "plots" / "nees.png").exists() and not (out / "plots" / "rpe.png").exists()
+
+
+# -- configuration values: every field type- and range-checked -----------------------------------
+
+def _bad_values(default) -> list:
+    """Values of the wrong type (or out of range) for a field with this default."""
+    if isinstance(default, bool):
+        return ["false", "true", 0, 1, None]
+    if isinstance(default, int):
+        return [True, 2.5, "3", None, -1]
+    if isinstance(default, float):
+        return [True, "1.0", None, float("nan"), -1.0]
+    if isinstance(default, str):
+        return [5, "no-such-choice", None, ["rigid3d"]]
+    return [True, "x", -1, 2.5]  # robust/max_hamming (None by default)
+
+
+def _config_cases():
+    import dataclasses
+
+    from covo_gtsam.frontend import FrontendConfig
+    from covo_gtsam.odometry import OdometryConfig
+
+    for cls, prefix in ((OdometryConfig, ""), (FrontendConfig, "frontend.")):
+        for f in dataclasses.fields(cls):
+            if f.name == "frontend":
+                continue
+            default = getattr(cls(), f.name)
+            for bad in _bad_values(default):
+                if f.name == "robust" and bad is None:
+                    continue  # None is a valid kernel choice
+                yield pytest.param(prefix, f.name, bad, id=f"{prefix}{f.name}={bad!r}")
+
+
+@pytest.mark.parametrize("prefix,name,bad", list(_config_cases()))
+def test_every_config_field_rejects_wrong_types(prefix, name, bad):
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.odometry import OdometryConfig
+
+    data = {"frontend": {name: bad}} if prefix else {name: bad}
+    with pytest.raises(ConfigError) as info:
+        OdometryConfig.from_dict(data)
+    assert name in str(info.value)
+
+
+def test_config_accepts_its_own_dict_and_numpy_scalars():
+    from covo_gtsam.odometry import OdometryConfig
+
+    cfg = OdometryConfig()
+    assert OdometryConfig.from_dict(cfg.to_dict()) == cfg
+    assert OdometryConfig.from_dict({"frontend": None}) == cfg
+    OdometryConfig.from_dict({"pixel_sigma": np.float32(1.5), "restart_after": np.int64(3), "keyframes": np.bool_(True),
+                              "frontend": {"n_features": np.int32(500), "scale_factor": 2}})
+
+
+def test_orb_pyramid_and_patch_must_fit_the_camera():
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.frontend import FrontendConfig
+    from covo_gtsam.odometry import OdometryConfig
+
+    with pytest.raises(ConfigError, match="frontend.n_levels 40 .*pyramid"):
+        VisualOdometry(Camera.preset("fr1"), OdometryConfig(frontend=FrontendConfig(n_levels=40, scale_factor=2.0)))
+    with pytest.raises(ConfigError, match="frontend.patch_size 240"):
+        VisualOdometry(Camera.preset("fr1"), OdometryConfig(frontend=FrontendConfig(patch_size=240)))
+    VisualOdometry(Camera.preset("fr1"), OdometryConfig(frontend=FrontendConfig(n_levels=9, scale_factor=2.0)))
+
+
+# -- analyze-noise and simulate arguments ---------------------------------------------------------
+
+def assert_argument_error(proc: subprocess.CompletedProcess, *needles: str) -> None:
+    """argparse's usage lines, then one error line; exit 2, no traceback."""
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "error:" in last
+    for n in needles:
+        assert n in last, last
+
+
+def test_cli_analyze_noise_too_few_frames(small_seq, tmp_path):
+    assert_argument_error(run_cli(["analyze-noise", str(small_seq), "--out", str(tmp_path / "o"), "--max-frames", "1"]),
+                          "--max-frames", "2")
+    rgb = (small_seq / "rgb.txt").read_text().splitlines()
+    (small_seq / "rgb.txt").write_text(rgb[0] + "\n")  # a one-frame sequence
+    assert_clean_error(run_cli(["analyze-noise", str(small_seq), "--out", str(tmp_path / "o"), "--no-plots",
+                                "--quiet"]), small_seq.name, "at least 2 frames")
+
+
+def test_cli_analyze_noise_without_any_analysable_pair(small_seq, tmp_path):
+    # ground truth exists but covers none of the frames: no pair can be analysed
+    (small_seq / "groundtruth.txt").write_text("1.0 0 0 0 0 0 0 1\n1.01 0 0 0 0 0 0 1\n")
+    proc = run_cli(["analyze-noise", str(small_seq), "--out", str(tmp_path / "o"), "--no-plots", "--quiet"])
+    assert_clean_error(proc, "no frame pair could be analysed")
+    assert not (tmp_path / "o" / "noise.json").exists()
+
+
+def test_analysis_skips_unreadable_frames_but_not_bugs(small_seq, monkeypatch):
+    from covo_gtsam import analysis
+    from covo_gtsam.datasets.tum import TumSequence
+
+    corrupt(small_seq, 3, "truncated")
+    summary = analysis.analyze_sequence(TumSequence(small_seq))
+    assert summary["frame_pairs"] == N_FRAMES - 3  # the pairs 2-3 and 3-4 are gone
+
+    def broken(*a, **k):
+        raise RuntimeError("a bug, not a bad frame")
+
+    monkeypatch.setattr(analysis, "prepare_frame", broken)
+    with pytest.raises(RuntimeError, match="a bug"):
+        analysis.analyze_sequence(TumSequence(small_seq))
+
+
+@pytest.mark.parametrize("args,needle", [(["--seed", "-1"], "--seed"), (["--runs", "0"], "--runs"),
+                                         (["--points", "2"], "--points"), (["--pixel-sigma", "0"], "--pixel-sigma"),
+                                         (["--pixel-sigma", "1e-9"], "--pixel-sigma"), (["--max-depth", "inf"], "--max-depth"),
+                                         (["--min-depth", "-1"], "--min-depth"), (["--scale", "inf"], "--scale"),
+                                         (["--points", "100000000"], "--points")])
+def test_cli_simulate_bad_arguments(tmp_path, args, needle):
+    assert_argument_error(run_cli(["simulate", *args, "--out", str(tmp_path / "o"), "--no-plots"]), needle)
+
+
+def test_cli_simulate_depth_range_reversed(tmp_path):
+    proc = run_cli(["simulate", "--min-depth", "5", "--max-depth", "1", "--out", str(tmp_path / "o"), "--no-plots"])
+    assert_clean_error(proc, "--min-depth", "--max-depth")
+    assert proc.returncode == 2
+
+
+def test_cli_simulate_huge_pixel_noise_says_ill_conditioned(tmp_path):
+    proc = run_cli(["simulate", "--pixel-sigma", "1e6", "--runs", "2", "--out", str(tmp_path / "o"), "--no-plots",
+                    "--quiet"])
+    assert_clean_error(proc, "ill-conditioned", "standard deviations")
+    assert "collinear" not in proc.stderr and proc.returncode == 2
+
+
+# -- library API: arguments -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("max_frames", [-5, 0, 2.5, True, "3"])
+def test_run_sequence_rejects_bad_max_frames(small_seq, tmp_path, max_frames):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.pipeline import run_sequence
+
+    with pytest.raises(ConfigError, match="max_frames"):
+        run_sequence(TumSequence(small_seq), tmp_path / "o", max_frames=max_frames, plots=False, progress=False)
+    assert not (tmp_path / "o").exists()
+
+
+def test_camera_preset_names_are_accepted(small_seq):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.errors import ConfigError
+
+    assert TumSequence(small_seq, camera="fr2").camera == Camera.preset("fr2")
+    assert TumSequence(small_seq, camera="freiburg3").camera == Camera.preset("fr3")
+    with pytest.raises(ConfigError, match="fr9"):
+        TumSequence(small_seq, camera="fr9")
+    assert VisualOdometry("fr1").camera == Camera.preset("fr1")
+    with pytest.raises(ConfigError, match="camera must be a Camera or a preset name"):
+        VisualOdometry(5)
+    with pytest.raises(ConfigError, match="config must be an OdometryConfig"):
+        VisualOdometry("fr1", {"keyframes": True})
+
+
+def _sim_pairs(n: int = 60, pixel_sigma: float = 2.0):
+    from covo_gtsam.noise import PixelNoise, PointNoiseModel
+    from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements
+
+    rng = np.random.default_rng(1)
+    scene = make_scene(SimulationConfig(num_points=n), rng)
+    model = PointNoiseModel(pixel=PixelNoise(pixel_sigma, pixel_sigma))
+    X0, Q0 = noisy_measurements(scene.X0, scene.camera, model, rng)
+    X1, Q1 = noisy_measurements(scene.X1, scene.camera, model, rng)
+    return scene, X0, X1, Q0, Q1
+
+
+def test_estimate_accepts_a_4x4_initial_pose():
+    import gtsam
+
+    from covo_gtsam.errors import InputError
+
+    scene, X0, X1, Q0, Q1 = _sim_pairs()
+    a = estimate_relative_pose(X0, X1, Q0, Q1, initial=gtsam.Pose3(scene.T01))
+    b = estimate_relative_pose(X0, X1, Q0, Q1, initial=scene.T01)
+    np.testing.assert_allclose(b.matrix, a.matrix, atol=1e-9)
+    np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-6)
+    c = estimate_relative_pose(X0, X1, Q0, Q1, initial=np.eye(4))
+    np.testing.assert_allclose(c.matrix, a.matrix, atol=1e-6)
+    for bad, needle in ((np.eye(3), "4x4"), (2 * np.eye(4), "rigid"), ("x", "4x4"), (np.full((4, 4), np.nan), "NaN")):
+        with pytest.raises(InputError, match=needle) as info:
+            estimate_relative_pose(X0, X1, Q0, Q1, initial=bad)
+        assert "initial" in str(info.value)
+
+
+def test_string_scale_is_a_clear_error():
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.odometry import OdometryConfig
+    from covo_gtsam.simulation import SimulationConfig
+
+    for cls in (OdometryConfig, SimulationConfig):
+        with pytest.raises(ConfigError, match="scale must be a positive number, got '2'"):
+            cls(scale="2")
+        with pytest.raises(ConfigError, match="scale"):
+            cls(scale=True)
+    X = np.random.default_rng(0).uniform(-1, 1, (10, 3)) + [0, 0, 3]
+    Q = np.tile(np.eye(3) * 1e-4, (10, 1, 1))
+    for bad in ("2", True, float("nan")):
+        with pytest.raises(InputError, match="scale must be a positive finite number"):
+            estimate_relative_pose(X, X, Q, Q, scale=bad)
+
+
+def test_register_frame_rejects_bad_timestamps(sample_dir):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.errors import InputError
+    from covo_gtsam.frontend import load_depth, load_grey
+
+    seq = TumSequence(sample_dir)
+    vo = VisualOdometry(seq.camera)
+    frame = vo.prepare(load_grey(seq.rgb_paths[0]), load_depth(seq.depth_paths[0]))
+    assert vo.register_frame(frame, timestamp=10.0).status == "first"
+    for bad, needle in ((float("nan"), "finite"), (float("inf"), "finite"), (9.5, "earlier"), ("11", "number"),
+                        (None, "number")):
+        with pytest.raises(InputError, match=needle):
+            vo.register_frame(frame, timestamp=bad)
+    with pytest.raises(InputError, match="earlier"):
+        vo.mark_lost(9.0, "unreadable")
+    assert len(vo.steps) == 1  # rejected frames are not recorded
+    # a repeated stamp is accepted (no velocity over a zero interval)
+    step = vo.register_frame(frame, timestamp=10.0)
+    assert step.tracked and step.velocity is None and np.all(np.isfinite(step.covariance))
+
+
+# -- error messages -------------------------------------------------------------------------------
+
+def test_degeneracy_message_tells_collinear_from_ill_conditioned():
+    _, X0, X1, Q0, Q1 = _sim_pairs(pixel_sigma=1e6)
+    with pytest.raises(DegenerateGeometryError) as info:
+        estimate_relative_pose(X0, X1, Q0, Q1)
+    msg = str(info.value)
+    assert "ill-conditioned" in msg and "collinear" not in msg and "\n" not in msg
+    X = np.stack([np.linspace(-1, 1, 10), np.zeros(10), np.full(10, 2.0)], 1)
+    Q = np.tile(np.eye(3) * 1e-4, (10, 1, 1))
+    with pytest.raises(DegenerateGeometryError, match="collinear"):
+        estimate_relative_pose(X + [0.05, 0.0, 0.0], X, Q, Q)
+
+
+def test_covariance_error_is_one_line(monkeypatch):
+    import gtsam
+
+    from covo_gtsam import estimator
+    from covo_gtsam.errors import CovarianceError
+
+    def singular_marginals(information, pose, key=estimator.POSE_KEY):
+        R = np.zeros((6, 6))
+        R[:5, :5] = np.eye(5)
+        graph = gtsam.GaussianFactorGraph()
+        graph.add(gtsam.JacobianFactor(key, R, np.zeros(6), gtsam.noiseModel.Unit.Create(6)))
+        values = gtsam.Values()
+        values.insert(key, pose)
+        return gtsam.Marginals(graph, values).marginalCovariance(key)  # GTSAM's multi-line error
+
+    monkeypatch.setattr(estimator, "marginal_covariance", singular_marginals)
+    _, X0, X1, Q0, Q1 = _sim_pairs()
+    with pytest.raises(CovarianceError) as info:
+        estimate_relative_pose(X0, X1, Q0, Q1)
+    msg = str(info.value)
+    assert "\n" not in msg and "GTSAM could not compute the marginal covariance" in msg
+    assert "ndeterminate" in msg and "https://" not in msg

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
-import numpy as np
+import warnings
 
+import numpy as np
+import pytest
+
+from covo_gtsam.errors import ConfigError
+from covo_gtsam.noise import KinectAxialNoise
 from covo_gtsam.simulation import SimulationConfig, run_simulation
 
 
@@ -28,3 +33,28 @@ def test_consistent_weighting_smoke():
 def test_thesis_weighting_is_overconfident():
     r = run_simulation(SimulationConfig(runs=40, seed=0, weighting="thesis"))
     assert r.anees_translation > 8 and r.anees_rotation > 8
+
+
+@pytest.mark.parametrize("kwargs,needle", [
+    ({"seed": -1}, "seed"), ({"seed": 1.5}, "seed"), ({"runs": 0}, "runs"), ({"runs": True}, "runs"),
+    ({"num_points": 2}, "num_points"), ({"num_points": 10**9}, "num_points"), ({"pixel_sigma": 0.0}, "pixel_sigma"),
+    ({"pixel_sigma": 1e-9}, "pixel_sigma"), ({"pixel_sigma": True}, "pixel_sigma"), ({"scale": "2"}, "scale"),
+    ({"depth_range": (5.0, 1.0)}, "depth_range"), ({"depth_range": (0.0, 1.0)}, "depth_range"),
+    ({"depth_range": (0.5, float("inf"))}, "depth_range"), ({"depth_range": 5.0}, "depth_range"),
+    ({"weighting": "magic"}, "weighting"), ({"motion": (1.0, 2.0)}, "motion"),
+    ({"motion": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)}, "quaternion"), ({"camera": "fr9"}, "fr9"),
+    ({"depth_model": None}, "depth_model"),
+])
+def test_config_rejects_invalid_values(kwargs, needle):
+    with pytest.raises(ConfigError, match=needle):
+        SimulationConfig(**kwargs)
+
+
+def test_non_positive_noisy_depths_are_dropped_without_warnings():
+    # a depth noise of over 1 m at 0.5-5 m makes some noisy depths negative: no measurement
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = run_simulation(SimulationConfig(runs=3, num_points=200, depth_model=KinectAxialNoise(a=1.0)))
+    assert r.dropped_pairs.sum() > 0 and r.summary()["dropped_pairs"] == r.dropped_pairs.sum()
+    assert np.all(np.isfinite(r.errors)) and np.all(np.isfinite(r.covariances))
+    assert run_simulation(SimulationConfig(runs=2, num_points=100)).summary()["dropped_pairs"] == 0

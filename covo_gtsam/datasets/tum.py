@@ -157,8 +157,9 @@ class TumSequence:
     ``"fr3"`` from the folder name, or None), ``timestamps`` (colour stamps of the frames, s, (K,)),
     ``rgb_paths`` / ``depth_paths`` (absolute paths), ``groundtruth`` (T_world,cam (K, 4, 4) at the
     frame stamps, or None without ``groundtruth.txt``) and ``gt_valid`` (K,) bool.
-    ``camera`` is the given camera, else the preset named by ``camera_name`` (reading it raises
-    :class:`DatasetError` when neither is known).
+    ``camera`` is the given camera (a :class:`~covo_gtsam.camera.Camera`, or a preset name such as
+    ``"fr1"``, which must be known: :class:`ConfigError` otherwise), else the preset named by
+    ``camera_name`` (reading it raises :class:`DatasetError` when neither is known).
 
     Raises :class:`DatasetError` when the folder, ``rgb.txt`` or ``depth.txt`` is missing, a line
     is malformed, no frame can be associated, or a listed file of an associated frame is missing.
@@ -188,6 +189,10 @@ class TumSequence:
                 if not os.path.isfile(p):
                     raise DatasetError(f"{self.path / listing} lists {p}, which does not exist")
         self.camera_name = camera_name_from_path(self.path)
+        if isinstance(camera, str):  # a preset name
+            from ..camera import Camera
+
+            camera = Camera.preset(camera)
         self._camera = camera
 
         self.groundtruth: np.ndarray | None = None
