@@ -205,11 +205,32 @@ def _plots_missing() -> None:
     print(PLOTS_MISSING, file=sys.stderr)
 
 
+def _sequence_arguments(parser: argparse.ArgumentParser, help: str) -> None:
+    """The sequence folder and ``--camera``, common to the commands that read a sequence."""
+    parser.add_argument("sequence", metavar="SEQ_DIR", help=help)
+    parser.add_argument("--camera", choices=["fr1", "fr2", "fr3"],
+                        help="camera preset (default: guessed from the folder name, e.g. 'freiburg1' -> fr1)")
+
+
 def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT") -> None:
     """``--out`` (required), ``--no-plots`` and ``--quiet``, common to every command."""
     parser.add_argument("--out", required=True, metavar=metavar, help="results folder (created if missing)")
     parser.add_argument("--no-plots", action="store_true", help="do not write plots/")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the conventions epilog as written; wraps descriptions and help to the terminal width."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if text.startswith("conventions:"):
+            return super()._fill_text(text, width, indent)
+        return argparse.HelpFormatter._fill_text(self, text, width, indent)
+
+
+def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentParser:
+    """A sub-command with the shared epilog and formatter."""
+    return sub.add_parser(name, help=help, description=description, epilog=EPILOG, formatter_class=_HelpFormatter)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -220,38 +241,38 @@ def build_parser() -> argparse.ArgumentParser:
         prog="covo",
         description="Error-aware RGB-D visual odometry on GTSAM: relative poses with covariances.",
         epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=_HelpFormatter,
     )
+    from . import __version__
+
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
-    run = sub.add_parser(
-        "run",
+    run = _command(
+        sub, "run",
         help="run visual odometry on a TUM RGB-D sequence folder",
         description="Run visual odometry on a TUM RGB-D sequence folder (rgb.txt, depth.txt, rgb/, depth/, "
         "optional groundtruth.txt) and write trajectory.txt (TUM format), relative.txt (relative poses with "
         "6x6 covariances), metrics.json and plots/ into OUT.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    run.add_argument("sequence", metavar="SEQ_DIR", help="TUM RGB-D sequence folder")
-    run.add_argument("--camera", choices=["fr1", "fr2", "fr3"],
-                     help="camera preset (default: guessed from the folder name, e.g. 'freiburg1' -> fr1)")
-    run.add_argument("--max-frames", type=_positive_int, metavar="N", help="process only the first N frames")
+    _sequence_arguments(run, "TUM RGB-D sequence folder")
+    run.add_argument("--max-frames", type=_positive_int, metavar="N",
+                     help="process only the first N frames (default: all)")
     run.add_argument("--config", metavar="FILE", help="TOML or JSON settings (see README: configuration)")
     run.add_argument("--weighting", choices=WEIGHTINGS, help="residual weighting (default: consistent)")
-    run.add_argument("--scale", type=_positive_float, metavar="PHI", help="covariance scale phi (default 1)")
+    run.add_argument("--scale", type=_positive_float, metavar="PHI",
+                     help="covariance scale phi: multiplies each pair's point-transfer covariance; the "
+                     "frame term is added after (default 1)")
     _output_arguments(run)
     run.set_defaults(func=cmd_run)
 
-    sim = sub.add_parser(
-        "simulate",
+    sim = _command(
+        sub, "simulate",
         help="Monte Carlo consistency study of the thesis's simulation (section 5.2)",
         description="Monte Carlo simulation of the thesis (5.2): 500 points seen by two fr1 cameras, motion "
         "[0.6 0.6 0.05 | -0.183 -0.183 0 0.966], pixel noise and Kinect depth noise. Writes metrics.json "
         "(ANEES, predicted vs empirical sigmas) and plots/ into OUT.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sim.add_argument("--runs", type=_int_in(1, MAX_RUNS), default=1000, metavar="N",
                      help="Monte Carlo runs (default 1000)")
@@ -270,18 +291,16 @@ def build_parser() -> argparse.ArgumentParser:
                      help=f"farthest depth (default 5 m, at most {MAX_DEPTH:g} m)")
     _output_arguments(sim, "DIR")
     sim.set_defaults(func=cmd_simulate)
-    noise = sub.add_parser(
-        "analyze-noise",
+    noise = _command(
+        sub, "analyze-noise",
         help="measure pixel and depth noise of matched inliers against ground truth (thesis 5.3.1)",
         description="Use the sequence's ground truth to measure the image-plane error of the matched inliers "
         "(pseudo-inliers included) per frame pair and over time, and the depth residuals against the depth "
         "model. Writes noise.json and plots/noise.png into OUT.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    noise.add_argument("sequence", metavar="SEQ_DIR", help="TUM RGB-D sequence folder with groundtruth.txt")
-    noise.add_argument("--camera", choices=["fr1", "fr2", "fr3"], help="camera preset (default: from the folder name)")
-    noise.add_argument("--max-frames", type=_int_in(2), metavar="N", help="only the first N frames (at least 2)")
+    _sequence_arguments(noise, "TUM RGB-D sequence folder with groundtruth.txt")
+    noise.add_argument("--max-frames", type=_int_in(2), metavar="N",
+                       help="only the first N frames (at least 2; default: all)")
     noise.add_argument("--pixel-sigma", type=_positive_float, default=2.0, metavar="PX",
                        help="pixel noise used by the outlier gate (default 2)")
     _output_arguments(noise)

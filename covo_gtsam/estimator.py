@@ -25,12 +25,13 @@ from .factors import (
     WEIGHTINGS,
     is_positive_definite,
     residual_covariances,
-    whitened_transfer_factor,
-    transfer_residuals,
+    transfer_mahalanobis,
+    weighted_rigid_fit,
     whitened_system,
+    whitened_transfer_factor,
     whitening,
 )
-from .geometry import rigid_fit, rotation_angle
+from .geometry import rotation_angle
 from .validation import is_real
 
 #: Key of the relative pose in the estimator's graph.
@@ -124,22 +125,13 @@ def validate_inputs(X_k, X_k1, Q_k, Q_k1) -> tuple[np.ndarray, np.ndarray, np.nd
 
 def initial_guess(X_k: np.ndarray, X_k1: np.ndarray, Q_k: np.ndarray, Q_k1: np.ndarray) -> gtsam.Pose3:
     """Closed-form rigid fit ``X_k ≈ R X_k1 + t`` weighted by ``1 / trace(Q_k + Q_k1)``."""
-    w = 1.0 / (np.trace(Q_k, axis1=1, axis2=2) + np.trace(Q_k1, axis1=1, axis2=2))
-    R, t = rigid_fit(X_k, X_k1, w)
+    R, t = weighted_rigid_fit(X_k, X_k1, Q_k, Q_k1)
     return gtsam.Pose3(gtsam.Rot3(R), t)
 
 
 ROBUST_KERNELS = (None, "huber", "cauchy")
 #: Default robust threshold: sqrt of the chi2(3) 95 % quantile, in Mahalanobis distance.
 ROBUST_K = 2.7955
-
-
-def pair_mahalanobis(pose: gtsam.Pose3, X_k, X_k1, Q_k, Q_k1) -> np.ndarray:
-    """Mahalanobis distance (N,) of each pair's ``r_b`` under ``S_b = Q_k + R Q_k1 R^T`` at ``pose``."""
-    R = pose.rotation().matrix()
-    r_b, _ = transfer_residuals(R, pose.translation(), X_k, X_k1)
-    S_b, _ = residual_covariances(Q_k, Q_k1, "consistent", R)
-    return np.linalg.norm(np.einsum("nij,nj->ni", whitening(S_b / 2.0), r_b), axis=1)
 
 
 def robust_weights(d: np.ndarray, kernel: str, k: float = ROBUST_K) -> np.ndarray:
@@ -310,7 +302,9 @@ def estimate_relative_pose(
             raise EstimationError("Levenberg-Marquardt returned a non-finite pose")
         converged = weighting == "thesis" or rotation_angle(R_w.T @ pose.rotation().matrix()) < reweight_tol
         if robust:
-            w_new = robust_weights(pair_mahalanobis(pose, X_k, X_k1, Q_k, Q_k1), robust, robust_k)
+            R_p = pose.rotation().matrix()
+            d = np.sqrt(transfer_mahalanobis(R_p, pose.translation(), X_k, X_k1, Q_k, Q_k1))
+            w_new = robust_weights(d, robust, robust_k)
             converged = converged and np.max(np.abs(w_new - w)) < 1e-3
             w = w_new
         if converged:

@@ -50,7 +50,7 @@ import gtsam
 import numpy as np
 
 from .errors import InputError
-from .geometry import skew
+from .geometry import rigid_fit, skew
 
 WEIGHTINGS = ("consistent", "thesis")
 
@@ -96,6 +96,48 @@ def rotate_covariances(R: np.ndarray, Q: np.ndarray) -> np.ndarray:
     n = Q.shape[0]
     RQ = (Q.reshape(-1, 3) @ R.T).reshape(n, 3, 3).transpose(0, 2, 1)  # (Q R^T)^T = R Q
     return (RQ.reshape(-1, 3) @ R.T).reshape(n, 3, 3)
+
+
+SYM6 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def sym3_mahalanobis(S6: tuple[np.ndarray, ...], r: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """``r^T S^-1 r`` for symmetric 3x3 ``S`` given by its 6 upper entries (any broadcastable
+    shapes), by the adjugate; ``inf`` where ``S`` is not positive definite."""
+    a, b, c, d, e, f = S6
+    x, y, z = r
+    A00 = d * f - e * e
+    A01 = c * e - b * f
+    A02 = b * e - c * d
+    A11 = a * f - c * c
+    A12 = b * c - a * e
+    A22 = a * d - b * b
+    det = a * A00 + b * A01 + c * A02
+    q = A00 * x * x + A11 * y * y + A22 * z * z + 2.0 * (A01 * x * y + A02 * x * z + A12 * y * z)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = q / det
+    return np.where((det > 0) & (a > 0) & (A22 > 0), m, np.inf)
+
+
+def transfer_mahalanobis(
+    R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray, Q_cur: np.ndarray
+) -> np.ndarray:
+    """Squared Mahalanobis norm (N,) of each pair's ``r_b = X_ref - (R X_cur + t)`` under its
+    first-order covariance ``S = Q_ref + R Q_cur R^T`` (:func:`residual_covariances` returns
+    ``2 S``); ``inf`` where ``S`` is not positive definite. 3 dof per pair."""
+    r = X_ref - (X_cur @ R.T + t)
+    C_b, _ = residual_covariances(Q_ref, Q_cur, "consistent", R)
+    S6 = tuple(0.5 * C_b[:, i, j] for i, j in SYM6)
+    return sym3_mahalanobis(S6, (r[:, 0], r[:, 1], r[:, 2]))
+
+
+def weighted_rigid_fit(
+    X_k: np.ndarray, X_k1: np.ndarray, Q_k: np.ndarray, Q_k1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form ``(R, t)`` with ``X_k ≈ R X_k1 + t``, pairs weighted by ``1 / trace(Q_k + Q_k1)``
+    (:func:`covo_gtsam.geometry.rigid_fit`): the initial guess and the RANSAC refit."""
+    w = 1.0 / (np.trace(Q_k, axis1=1, axis2=2) + np.trace(Q_k1, axis1=1, axis2=2))
+    return rigid_fit(X_k, X_k1, w)
 
 
 def is_positive_definite(C: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import ConfigError, InputError
-from .factors import residual_covariances
+from .factors import SYM6, sym3_mahalanobis, transfer_mahalanobis, weighted_rigid_fit
 from .geometry import make_pose, rigid_fit
 from .noise import PointNoiseModel, surface_angles
 from .validation import check_choice, check_int, check_real, is_int, is_real
@@ -587,39 +587,6 @@ def prepare_frame(
 # --------------------------------------------------------------------------------------------
 # outlier rejection
 # --------------------------------------------------------------------------------------------
-_SYM6 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-def _sym_mahalanobis(S6: tuple[np.ndarray, ...], r: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
-    """``r^T S^-1 r`` for symmetric 3x3 ``S`` given by its 6 upper entries (any broadcastable
-    shapes), by the adjugate; ``inf`` where ``S`` is not positive definite."""
-    a, b, c, d, e, f = S6
-    x, y, z = r
-    A00 = d * f - e * e
-    A01 = c * e - b * f
-    A02 = b * e - c * d
-    A11 = a * f - c * c
-    A12 = b * c - a * e
-    A22 = a * d - b * b
-    det = a * A00 + b * A01 + c * A02
-    q = A00 * x * x + A11 * y * y + A22 * z * z + 2.0 * (A01 * x * y + A02 * x * z + A12 * y * z)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        m = q / det
-    return np.where((det > 0) & (a > 0) & (A22 > 0), m, np.inf)
-
-
-def transfer_mahalanobis(
-    R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray, Q_cur: np.ndarray
-) -> np.ndarray:
-    """Squared Mahalanobis norm (N,) of ``r = X_ref - (R X_cur + t)`` under
-    ``S = Q_ref + R Q_cur R^T`` (the backward residual's first-order covariance, obtained from
-    :func:`covo_gtsam.factors.residual_covariances`, which returns ``2 S``)."""
-    r = X_ref - (X_cur @ R.T + t)
-    C_b, _ = residual_covariances(Q_ref, Q_cur, "consistent", R)
-    S6 = tuple(0.5 * C_b[:, i, j] for i, j in _SYM6)
-    return _sym_mahalanobis(S6, (r[:, 0], r[:, 1], r[:, 2]))
-
-
 def _score_hypotheses(
     R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Qa6: np.ndarray, Qb9: np.ndarray
 ) -> np.ndarray:
@@ -630,12 +597,12 @@ def _score_hypotheses(
     """
     H, n = R.shape[0], X_ref.shape[0]
     K = np.einsum("hik,hjl->hijkl", R, R).reshape(H, 9, 9)
-    rows = [3 * i + j for i, j in _SYM6]
+    rows = [3 * i + j for i, j in SYM6]
     M = (K[:, rows, :].transpose(1, 0, 2).reshape(6 * H, 9) @ Qb9.T).reshape(6, H, n)  # entries of R Q_cur R^T
     S6 = tuple(M[k] + Qa6[k] for k in range(6))
     P = (R.reshape(3 * H, 3) @ X_cur.T).reshape(H, 3, n)  # R X_cur
     r = tuple(X_ref[:, k] - P[:, k] - t[:, k, None] for k in range(3))
-    return _sym_mahalanobis(S6, r)
+    return sym3_mahalanobis(S6, r)
 
 
 @dataclass
@@ -753,7 +720,7 @@ def ransac_rigid3d(
     drawn = sample_triples(rng, n, int(iterations))
     consistent = _rigid_consistent(drawn, X_ref, X_cur, Q_ref, Q_cur, chi2)
 
-    Qa6 = np.stack([Q_ref[:, i, j] for i, j in _SYM6])  # (6, N)
+    Qa6 = np.stack([Q_ref[:, i, j] for i, j in SYM6])  # (6, N)
     Qb9 = Q_cur.reshape(n, 9)
     R_all, t_all, count_all, cost_all = [], [], [], []
     best_count = 0
@@ -793,8 +760,7 @@ def ransac_rigid3d(
     for _ in range(int(refits)):
         if np.count_nonzero(inliers) < 3:
             break
-        w = 1.0 / (np.trace(Q_ref[inliers], axis1=1, axis2=2) + np.trace(Q_cur[inliers], axis1=1, axis2=2))
-        R2, t2 = rigid_fit(X_ref[inliers], X_cur[inliers], w)
+        R2, t2 = weighted_rigid_fit(X_ref[inliers], X_cur[inliers], Q_ref[inliers], Q_cur[inliers])
         if not (np.all(np.isfinite(R2)) and np.all(np.isfinite(t2))):
             break
         inliers2 = transfer_mahalanobis(R2, t2, X_ref, X_cur, Q_ref, Q_cur) < chi2

@@ -48,6 +48,9 @@ class OdometryConfig:
     last two tracked frames (scaled by the time elapsed); the prediction is an extra RANSAC
     hypothesis and, without RANSAC, the initial guess. ``"none"``: no prediction.
 
+    ``scale`` (the thesis's phi) multiplies each pair's point-transfer covariance from the
+    estimator; the frame-level term is added after it, unscaled.
+
     ``robust`` (``"huber"``/``"cauchy"``) and ``variance_factor`` select the estimator's robust
     re-weighting and a-posteriori variance scaling (see :func:`estimate_relative_pose`).
 

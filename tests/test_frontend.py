@@ -406,7 +406,34 @@ def test_transfer_mahalanobis_matches_direct_solve():
     r = X_ref - (X_cur @ R.T + t)
     S = Q_ref + R @ Q_cur @ R.T
     expected = np.einsum("ni,ni->n", r, np.linalg.solve(S, r[..., None])[..., 0])
-    np.testing.assert_allclose(fe.transfer_mahalanobis(R, t, X_ref, X_cur, Q_ref, Q_cur), expected, rtol=1e-9)
+    from covo_gtsam.factors import transfer_mahalanobis
+
+    np.testing.assert_allclose(transfer_mahalanobis(R, t, X_ref, X_cur, Q_ref, Q_cur), expected, rtol=1e-9)
+    # not positive definite -> inf, never a negative or NaN distance
+    Q_bad = Q_ref.copy()
+    Q_bad[0] = -np.eye(3)
+    Q_bad[1] = 0.0
+    d = transfer_mahalanobis(R, t, X_ref, X_cur, Q_bad, np.zeros_like(Q_cur))
+    assert np.isinf(d[0]) and np.isinf(d[1]) and np.all(np.isfinite(d[2:]))
+
+
+def test_weighted_rigid_fit_uses_inverse_trace_weights():
+    """The same 20 points twice, the second copy shifted by 10 cm in x and with larger covariances:
+    no rotation, and the translation is the mean shift weighted by 1 / trace(Q_ref + Q_cur)."""
+    from covo_gtsam.factors import weighted_rigid_fit
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-1, 1, (20, 3)) + [0, 0, 3]
+    X_cur = np.concatenate([pts, pts])
+    X_ref = X_cur.copy()
+    X_ref[20:] += [0.1, 0.0, 0.0]
+    Q_cur = np.tile(np.eye(3) * 1e-4, (40, 1, 1))
+    Q_ref = Q_cur.copy()
+    Q_ref[20:] *= 3.0  # traces: 6e-4 for the first copy, 12e-4 for the second
+    R, t = weighted_rigid_fit(X_ref, X_cur, Q_ref, Q_cur)
+    w1, w2 = 1.0 / 6e-4, 1.0 / 12e-4
+    np.testing.assert_allclose(R, np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(t, [0.1 * w2 / (w1 + w2), 0, 0], atol=1e-9)
 
 
 def test_homography_ransac_flags_outliers():

@@ -549,3 +549,15 @@ def test_covariance_error_is_one_line(monkeypatch):
     msg = str(info.value)
     assert "\n" not in msg and "GTSAM could not compute the marginal covariance" in msg
     assert "ndeterminate" in msg and "https://" not in msg
+
+
+def test_cli_version_and_help(capsys):
+    from covo_gtsam import __version__
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.strip() == f"covo {__version__}"
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    out = capsys.readouterr().out
+    assert "default: all" in out and "frame term" in out and "[rx ry rz tx ty tz]" in out
