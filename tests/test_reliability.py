@@ -80,10 +80,20 @@ def test_cli_folder_without_depth_list(small_seq, tmp_path):
     assert_clean_error(run_cli(["run", str(small_seq), "--out", str(tmp_path / "o")]), "depth.txt")
 
 
-def test_cli_listed_file_missing(small_seq, tmp_path):
-    rgb, _, _ = frame_files(small_seq, 3)
+def test_cli_listed_file_missing_makes_its_frame_lost(small_seq, tmp_path):
+    rgb, _, t = frame_files(small_seq, 3)
     rgb.unlink()
-    assert_clean_error(run_cli(["run", str(small_seq), "--out", str(tmp_path / "o")]), rgb.name, "does not exist")
+    proc = run_cli(["run", str(small_seq), "--out", str(tmp_path / "o"), "--no-plots"])
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert m["lost_frames"] == 1 and m["lost"][0]["timestamp"] == pytest.approx(t)
+    assert rgb.name in m["lost"][0]["reason"]
+
+
+def test_cli_no_listed_file_exists(small_seq, tmp_path):
+    shutil.rmtree(small_seq / "rgb")
+    shutil.rmtree(small_seq / "depth")
+    assert_clean_error(run_cli(["run", str(small_seq), "--out", str(tmp_path / "o")]), "none of the images")
 
 
 @pytest.mark.parametrize("content,needle", [("{not json", "not a valid JSON"), ('{"pixel_sigmaa": 2}', "unknown"),

@@ -224,13 +224,19 @@ def test_missing_depth_txt(tmp_path):
         TumSequence(seq)
 
 
-def test_listed_file_missing(tmp_path):
+def test_listed_file_missing_is_kept_and_reported(tmp_path):
+    """A missing image stays in the sequence (its frame is lost when read); none present is an error."""
     seq = make_sequence(tmp_path)
     victim = sorted((seq / "rgb").iterdir())[2]
     victim.unlink()
-    with pytest.raises(DatasetError, match=victim.name) as info:
+    s = TumSequence(seq)
+    assert str(victim) in s.rgb_paths and s.missing_files == [str(victim)]
+    for d in ("rgb", "depth"):
+        for f in (seq / d).iterdir():
+            f.unlink()
+    with pytest.raises(DatasetError, match="none of the images") as info:
         TumSequence(seq)
-    assert "rgb.txt" in str(info.value) and isinstance(info.value, CovoError)
+    assert isinstance(info.value, CovoError)
 
 
 def test_malformed_line_names_file_and_line(tmp_path):

@@ -184,10 +184,12 @@ class TumSequence:
         self.timestamps = np.array([rgb_t[i] for i, _ in pairs], dtype=float)
         self.rgb_paths = [str(self.path / rgb_n[i]) for i, _ in pairs]
         self.depth_paths = [str(self.path / dep_n[j]) for _, j in pairs]
-        for rp, dp in zip(self.rgb_paths, self.depth_paths):
-            for listing, p in (("rgb.txt", rp), ("depth.txt", dp)):
-                if not os.path.isfile(p):
-                    raise DatasetError(f"{self.path / listing} lists {p}, which does not exist")
+        # A listed file that is missing makes its frame lost when it is read (the run goes on);
+        # when none of the listed images exists the folder itself is wrong.
+        self.missing_files = [p for pair in zip(self.rgb_paths, self.depth_paths) for p in pair if not os.path.isfile(p)]
+        if len(self.missing_files) == 2 * len(self.rgb_paths):
+            raise DatasetError(f"{self.path}: none of the images listed in rgb.txt and depth.txt exists "
+                               f"(e.g. {self.rgb_paths[0]})")
         self.camera_name = camera_name_from_path(self.path)
         if isinstance(camera, str):  # a preset name
             from ..camera import Camera
