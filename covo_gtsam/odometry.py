@@ -41,8 +41,11 @@ class OdometryConfig:
     ``pixel_sigma`` (pixels) is the conic-ray noise of the keypoints. ``frame_sigma_rot_deg`` and
     ``frame_sigma_trans_m`` are per-axis standard deviations of an error common to all points
     of a frame pair (depth-image and synchronisation errors of the Kinect v1 that the per-point
-    model cannot see); they are added to each relative covariance. Defaults are calibrated once
-    for the sensor on the first half of the shared fr1_rpy frames, see docs/consistency.md.
+    model cannot see), per frame interval ``frame_interval_s`` (the camera's nominal frame period).
+    This error behaves like a random walk over frame intervals, so a pair ``k`` intervals apart
+    (after lost frames, or against a keyframe) gets ``k`` times that covariance
+    (:meth:`frame_intervals`). Defaults are calibrated once for the sensor on consecutive frames of
+    the first half of the shared fr1_rpy frames, see docs/consistency.md.
 
     ``motion_model``: ``"constant_velocity"`` predicts ``T_ref,cur`` from the motion between the
     last two tracked frames (scaled by the time elapsed); the prediction is an extra RANSAC
@@ -97,6 +100,7 @@ class OdometryConfig:
     max_translation_m: float = 0.5
     frame_sigma_rot_deg: float = 0.30
     frame_sigma_trans_m: float = 0.0041
+    frame_interval_s: float = 1.0 / 30.0
     restart_after: int = 5
     rolling_shutter_s: float = 0.025
 
@@ -110,7 +114,8 @@ class OdometryConfig:
             check_choice(name, getattr(self, name), allowed)
         for name in ("pixel_sigma_by_level", "use_surface_angle", "keyframes", "variance_factor"):
             check_bool(name, getattr(self, name))
-        positive = ("pixel_sigma", "scale", "depth_scale", "keyframe_ratio", "max_rotation_deg", "max_translation_m")
+        positive = ("pixel_sigma", "scale", "depth_scale", "keyframe_ratio", "max_rotation_deg", "max_translation_m",
+                    "frame_interval_s")
         for name in positive + ("frame_sigma_rot_deg", "frame_sigma_trans_m", "rolling_shutter_s"):
             check_real(name, getattr(self, name), "positive" if name in positive else "non-negative")
         if self.keyframe_ratio > 1:
@@ -124,11 +129,17 @@ class OdometryConfig:
         t = self.max_translation_m**2
         return np.diag([r, r, r, t, t, t])
 
-    def frame_noise(self) -> np.ndarray:
-        """6x6 frame-level covariance added to every relative pose (tangent [omega, v])."""
+    def frame_noise(self, dt: float | None = None) -> np.ndarray:
+        """6x6 frame-level covariance (tangent [omega, v]) added to a relative pose whose frames are
+        ``dt`` seconds apart: :meth:`frame_intervals` times the per-interval term (once if None)."""
         r = np.deg2rad(self.frame_sigma_rot_deg) ** 2
         t = self.frame_sigma_trans_m**2
-        return np.diag([r, r, r, t, t, t])
+        return np.diag([r, r, r, t, t, t]) * (1 if dt is None else self.frame_intervals(dt))
+
+    def frame_intervals(self, dt: float) -> int:
+        """Frame intervals between two frames ``dt`` seconds apart: ``round(dt / frame_interval_s)``,
+        at least 1 (timestamp jitter of consecutive frames does not change it)."""
+        return max(1, int(round(dt / self.frame_interval_s))) if np.isfinite(dt) else 1
 
     def noise_model(self) -> PointNoiseModel:
         return PointNoiseModel(pixel=PixelNoise(self.pixel_sigma, self.pixel_sigma), depth=KinectAxialNoise())
@@ -343,7 +354,7 @@ class VisualOdometry:
         step.status = "tracked"
         step.relative = res.pose
         step.velocity = gtsam.Pose3.Logmap(res.pose) / dt if dt > 0 else None
-        step.covariance = res.covariance + self._frame_noise
+        step.covariance = res.covariance + self._frame_noise * self.config.frame_intervals(dt)
         step.result = res
         step.pose = ref_step.pose.compose(res.pose)
         step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, res.pose, step.covariance)

@@ -571,3 +571,22 @@ def test_cli_version_and_help(capsys):
         main(["run", "--help"])
     out = capsys.readouterr().out
     assert "default: all" in out and "frame term" in out and "[rx ry rz tx ty tz]" in out
+
+
+def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
+    """Frames 0, 1 and then 3 (frame 2 skipped): the pair (1, 3) spans two intervals and gets twice
+    the per-interval frame term on top of the estimator's covariance; consecutive pairs once."""
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.frontend import load_depth, load_grey
+    from covo_gtsam.odometry import OdometryConfig
+
+    seq = TumSequence(sample_dir)
+    cfg = OdometryConfig()
+    vo = VisualOdometry(seq.camera, cfg)
+    steps = [vo.register_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i])
+             for i in (0, 1, 3)]
+    assert [s.status for s in steps] == ["first", "tracked", "tracked"]
+    for step, k in ((steps[1], 1), (steps[2], 2)):
+        assert cfg.frame_intervals(step.timestamp - step.ref_timestamp) == k
+        np.testing.assert_allclose(step.covariance - step.result.covariance, k * cfg.frame_noise(), rtol=1e-12)
+    assert cfg.frame_intervals(0.0) == 1 and cfg.frame_intervals(0.040) == 1 and cfg.frame_intervals(0.1) == 3
