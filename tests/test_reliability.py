@@ -558,7 +558,7 @@ def test_covariance_error_is_one_line(monkeypatch):
         estimate_relative_pose(X0, X1, Q0, Q1)
     msg = str(info.value)
     assert "\n" not in msg and "GTSAM could not compute the marginal covariance" in msg
-    assert "ndeterminate" in msg and "https://" not in msg
+    assert "ndetermina" in msg and "https://" not in msg  # GTSAM 4.2 says "Indeterminant"
 
 
 def test_cli_version_and_help(capsys):
