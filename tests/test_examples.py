@@ -6,7 +6,6 @@ import json
 import math
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -17,14 +16,13 @@ SAMPLE = "data/rgbd_dataset_freiburg1_rpy_head40"
 pytestmark = pytest.mark.skipif(not (ROOT / SAMPLE).is_dir(), reason="sample sequence missing")
 
 
-def run_example(*args: str, timeout: float = 120.0) -> tuple[dict, str, float]:
-    start = time.perf_counter()
+def run_example(*args: str, timeout: float = 120.0) -> tuple[dict, str]:
+    """Run an example script; the timeout only guards against a hang (speed lives in benchmarks/)."""
     proc = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
-    elapsed = time.perf_counter() - start
     assert proc.returncode == 0, f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
     lines = proc.stdout.strip().splitlines()
     assert lines, "no output"
-    return json.loads(lines[-1]), proc.stdout, elapsed
+    return json.loads(lines[-1]), proc.stdout
 
 
 def finite_numbers(obj) -> list[float]:
@@ -42,7 +40,7 @@ def finite_numbers(obj) -> list[float]:
 
 def test_pose_graph_isam2(tmp_path):
     out = tmp_path / "pg"
-    summary, stdout, elapsed = run_example(
+    summary, stdout = run_example(
         "examples/pose_graph_isam2.py", SAMPLE, "--out", str(out), "--max-frames", "20", "--fix-every", "5",
         "--seed", "3", "--repeat", "2")
     for key in ("ate_rmse_covo", "ate_rmse_unit", "ate_rmse_median", "ate_rmse_vo_only"):
@@ -55,7 +53,6 @@ def test_pose_graph_isam2(tmp_path):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     assert json.loads((out / "pose_graph.json").read_text())["ate_rmse_covo"] == summary["ate_rmse_covo"]
     assert "ATE RMSE" in stdout
-    assert elapsed < 30, f"took {elapsed:.1f} s"
 
 
 def test_pose_graph_isam2_rejects_bad_arguments(tmp_path):
@@ -65,7 +62,7 @@ def test_pose_graph_isam2_rejects_bad_arguments(tmp_path):
 
 
 def test_compare_covariances(tmp_path):
-    summary, stdout, elapsed = run_example(
+    summary, stdout = run_example(
         "examples/compare_covariances.py", "--runs", "30", "--seq", SAMPLE, "--out", str(tmp_path))
     sim = summary["simulation"]
     assert set(sim) >= {"consistent", "thesis"}
@@ -82,4 +79,3 @@ def test_compare_covariances(tmp_path):
     assert all(math.isfinite(x) for x in finite_numbers(summary))
     assert (tmp_path / "compare_covariances.json").is_file()
     assert "half-angle" in stdout and "Marginals" in stdout
-    assert elapsed < 30, f"took {elapsed:.1f} s"
