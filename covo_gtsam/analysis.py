@@ -19,7 +19,7 @@ from .errors import DatasetError, InputError
 from .frontend import FrontendConfig, associate_frames, load_depth, load_grey, make_orb, prepare_frame
 from .geometry import invert_pose
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
-from .validation import check_int, check_real
+from .validation import MAX_PIXEL_SIGMA, MIN_PIXEL_SIGMA, check_int, check_real
 
 
 def robust_sigma(x: np.ndarray) -> float:
@@ -42,7 +42,7 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
     """
     if max_frames is not None:
         check_int("max_frames", max_frames, 2)
-    check_real("pixel_sigma", pixel_sigma, "positive")
+    check_real("pixel_sigma", pixel_sigma, "positive", MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA)
     if seq.groundtruth is None:
         raise DatasetError(f"{seq.path}: the noise analysis needs groundtruth.txt")
     cfg = cfg or FrontendConfig()

@@ -22,26 +22,6 @@ conventions:
 """
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {value}")
-    return value
-
-
 def _int_in(minimum: int, maximum: int | None = None):
     """argparse type: an integer in ``[minimum, maximum]`` (no upper limit if None)."""
     expected = f"an integer >= {minimum}" if maximum is None else f"an integer from {minimum} to {maximum}"
@@ -81,12 +61,15 @@ def load_config_file(path: str):
     from .odometry import OdometryConfig
 
     p = Path(path)
+    is_toml = p.suffix.lower() == ".toml"
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a text file in UTF-8 ({exc.reason} at byte {exc.start})") from exc
     try:
-        if p.suffix.lower() == ".toml":
+        if is_toml:
             try:
                 import tomllib
             except ImportError:  # Python 3.10
@@ -95,7 +78,7 @@ def load_config_file(path: str):
         else:
             data = json.loads(text)
     except (ValueError, TypeError) as exc:
-        raise ConfigError(f"{p}: not a valid {'TOML' if p.suffix == '.toml' else 'JSON'} file ({exc})") from exc
+        raise ConfigError(f"{p}: not a valid {'TOML' if is_toml else 'JSON'} file ({exc})") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: the configuration must be a table/object of settings")
     try:
@@ -235,7 +218,8 @@ def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentPa
 
 def build_parser() -> argparse.ArgumentParser:
     from .factors import WEIGHTINGS
-    from .simulation import MAX_DEPTH, MAX_POINTS, MAX_RUNS, MIN_PIXEL_SIGMA
+    from .simulation import MAX_DEPTH, MAX_POINTS, MAX_RUNS
+    from .validation import MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA
 
     parser = argparse.ArgumentParser(
         prog="covo",
@@ -257,11 +241,11 @@ def build_parser() -> argparse.ArgumentParser:
         "6x6 covariances), metrics.json and plots/ into OUT.",
     )
     _sequence_arguments(run, "TUM RGB-D sequence folder")
-    run.add_argument("--max-frames", type=_positive_int, metavar="N",
+    run.add_argument("--max-frames", type=_int_in(1), metavar="N",
                      help="process only the first N frames (default: all)")
     run.add_argument("--config", metavar="FILE", help="TOML or JSON settings (see README: configuration)")
     run.add_argument("--weighting", choices=WEIGHTINGS, help="residual weighting (default: consistent)")
-    run.add_argument("--scale", type=_positive_float, metavar="PHI",
+    run.add_argument("--scale", type=_float_in(maximum=MAX_SCALE), metavar="PHI",
                      help="covariance scale phi: multiplies each pair's point-transfer covariance; the "
                      "frame term is added after (default 1)")
     _output_arguments(run)
@@ -279,9 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=_int_in(0), default=0, metavar="S", help="random seed, >= 0 (default 0)")
     sim.add_argument("--weighting", choices=WEIGHTINGS, default="consistent",
                      help="residual weighting (default: consistent)")
-    sim.add_argument("--scale", type=_positive_float, default=1.0, metavar="PHI",
+    sim.add_argument("--scale", type=_float_in(maximum=MAX_SCALE), default=1.0, metavar="PHI",
                      help="covariance scale phi (thesis: 16; default 1)")
-    sim.add_argument("--pixel-sigma", type=_float_in(MIN_PIXEL_SIGMA), default=8.0, metavar="PX",
+    sim.add_argument("--pixel-sigma", type=_float_in(MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA), default=8.0, metavar="PX",
                      help="pixel noise standard deviation in pixels (default 8)")
     sim.add_argument("--points", type=_int_in(3, MAX_POINTS), default=500, metavar="N",
                      help="points per run (default 500)")
@@ -301,7 +285,8 @@ def build_parser() -> argparse.ArgumentParser:
     _sequence_arguments(noise, "TUM RGB-D sequence folder with groundtruth.txt")
     noise.add_argument("--max-frames", type=_int_in(2), metavar="N",
                        help="only the first N frames (at least 2; default: all)")
-    noise.add_argument("--pixel-sigma", type=_positive_float, default=2.0, metavar="PX",
+    noise.add_argument("--pixel-sigma", type=_float_in(MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA), default=2.0,
+                       metavar="PX",
                        help="pixel noise used by the outlier gate (default 2)")
     _output_arguments(noise)
     noise.set_defaults(func=cmd_analyze_noise)

@@ -93,8 +93,15 @@ class RelativePoseResult:
         return gtsam.BetweenFactorPose3(key_k, key_k1, self.pose, self.noise_model())
 
 
+#: Largest accepted point coordinate and covariance entry magnitude (m, m^2): far beyond any camera
+#: range, small enough that products of them stay finite in double precision.
+MAX_COORDINATE = 1e6
+MAX_COVARIANCE = 1e12
+
+
 def validate_inputs(X_k, X_k1, Q_k, Q_k1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Check shapes, finiteness, symmetry and positive definiteness; return float64 arrays."""
+    """Check shapes, finiteness, magnitudes (:data:`MAX_COORDINATE`, :data:`MAX_COVARIANCE`),
+    symmetry and positive definiteness; return float64 arrays."""
     arrays = []
     for name, a, shape in (("X_k", X_k, (3,)), ("X_k1", X_k1, (3,)), ("Q_k", Q_k, (3, 3)), ("Q_k1", Q_k1, (3, 3))):
         try:
@@ -105,6 +112,9 @@ def validate_inputs(X_k, X_k1, Q_k, Q_k1) -> tuple[np.ndarray, np.ndarray, np.nd
             raise InputError(f"{name} must have shape (N, {', '.join(map(str, shape))}), got {a.shape}")
         if not np.all(np.isfinite(a)):
             raise InputError(f"{name} contains NaN or inf")
+        limit = MAX_COORDINATE if name.startswith("X") else MAX_COVARIANCE
+        if np.abs(a).max(initial=0.0) > limit:
+            raise InputError(f"{name} has entries above {limit:g} in magnitude (units are m and m^2)")
         arrays.append(a)
     X_k, X_k1, Q_k, Q_k1 = arrays
     n = X_k.shape[0]
@@ -268,7 +278,10 @@ def estimate_relative_pose(
         raise InsufficientPairsError(f"need at least 3 point pairs, got {n}")
 
     if initial is None:
-        pose = initial_guess(X_k, X_k1, Q_k, Q_k1)
+        try:
+            pose = initial_guess(X_k, X_k1, Q_k, Q_k1)
+        except np.linalg.LinAlgError as exc:
+            raise DegenerateGeometryError(f"the closed-form initial fit failed ({exc})") from exc
         if not np.all(np.isfinite(pose.matrix())):
             raise DegenerateGeometryError("the closed-form initial fit is not finite")
     else:
@@ -312,7 +325,7 @@ def estimate_relative_pose(
 
     e, J = whitened_system(pose.rotation().matrix(), pose.translation(), X_k, X_k1, W_b, W_f)
     information = J.T @ J
-    eig = np.linalg.eigvalsh(information)
+    eig = np.linalg.eigvalsh(information) if np.all(np.isfinite(information)) else np.full(6, np.nan)
     if not np.all(np.isfinite(eig)) or eig[0] <= MIN_INFO_RATIO * max(eig[-1], 1e-300):
         raise DegenerateGeometryError(_degeneracy_message(n, eig, X_k, X_k1, Q_k, Q_k1))
     try:
@@ -324,7 +337,7 @@ def estimate_relative_pose(
     chi2_per_dof = float(e @ e) / dof if dof > 0 else float("nan")
     if variance_factor and dof > 0:
         cov = cov * max(1.0, chi2_per_dof)
-    if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov)[0] <= 0.0:
+    if not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov)[0] <= 0.0:  # eigvalsh only on finite input
         raise CovarianceError("the marginal covariance is not finite and positive definite")
     return RelativePoseResult(
         pose=pose,

@@ -35,8 +35,10 @@ Factors come in two forms with the same residuals:
   7 rows (:func:`compress_system`): ``[Q^T e, sqrt(|e|^2 - |Q^T e|^2)]`` with Jacobian ``[R; 0]``
   for ``J = Q R``. That has the same error ``|e|^2``, the same normal equations
   (``R^T R = J^T J``, ``R^T Q^T e = J^T e``) and hence the same Levenberg-Marquardt steps and
-  marginals, without GTSAM copying a 6N x 6 matrix per linearisation. Only ``unwhitenedError``
-  differs: it is the 7-vector, not the 6N stacked residuals (use :func:`whitened_system` for those).
+  marginals, without GTSAM copying a 6N x 6 matrix per linearisation. What differs is visible
+  only on the factor itself: ``dim()`` is 7, and ``unwhitenedError`` is a 7-vector of the right
+  norm (``[|e|, 0, ...]`` when evaluated without Jacobians), not the 6N stacked residuals (use
+  :func:`whitened_system` for those).
 
 Unary factors act on a relative-pose key holding ``T_k,k1``; binary factors on two absolute pose
 keys ``x_k``, ``x_k1`` (world-from-camera) with ``T = x_k^-1 x_k1``.

@@ -25,13 +25,29 @@ from .factors import WEIGHTINGS
 from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 from .rolling_shutter import compensate_pair
-from .validation import check_bool, check_choice, check_int, check_real
+from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, check_bool, check_choice, check_int,
+                         check_real)
 
 
 #: Step statuses that carry a pose (``OdometryStep.tracked``).
 POSED_STATUSES = ("first", "tracked", "restart")
 #: Choices of ``OdometryConfig.motion_model``.
 MOTION_MODELS = ("constant_velocity", "none")
+
+
+#: Real-valued settings of :class:`OdometryConfig`: kind and range (None: unbounded on that side).
+_REAL_LIMITS = {
+    "pixel_sigma": ("positive", MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA),
+    "scale": ("positive", None, MAX_SCALE),
+    "depth_scale": ("positive", None, 1e9),
+    "keyframe_ratio": ("positive", None, 1.0),
+    "max_rotation_deg": ("positive", None, 180.0),
+    "max_translation_m": ("positive", None, 1e3),
+    "frame_sigma_rot_deg": ("non-negative", None, 180.0),
+    "frame_sigma_trans_m": ("non-negative", None, 1e3),
+    "frame_interval_s": ("positive", 1e-4, 1e3),
+    "rolling_shutter_s": ("non-negative", None, 1.0),
+}
 
 
 @dataclass(frozen=True)
@@ -114,12 +130,8 @@ class OdometryConfig:
             check_choice(name, getattr(self, name), allowed)
         for name in ("pixel_sigma_by_level", "use_surface_angle", "keyframes", "variance_factor"):
             check_bool(name, getattr(self, name))
-        positive = ("pixel_sigma", "scale", "depth_scale", "keyframe_ratio", "max_rotation_deg", "max_translation_m",
-                    "frame_interval_s")
-        for name in positive + ("frame_sigma_rot_deg", "frame_sigma_trans_m", "rolling_shutter_s"):
-            check_real(name, getattr(self, name), "positive" if name in positive else "non-negative")
-        if self.keyframe_ratio > 1:
-            raise ConfigError(f"keyframe_ratio must be a number in (0, 1], got {self.keyframe_ratio!r}")
+        for name, (kind, lo, hi) in _REAL_LIMITS.items():
+            check_real(name, getattr(self, name), kind, lo, hi)
         check_int("restart_after", self.restart_after, 1)
 
     def gap_noise(self) -> np.ndarray:
@@ -222,7 +234,6 @@ class VisualOdometry:
         self.config.frontend.check_image_size(self.camera.width, self.camera.height)
         self._orb_local = threading.local()  # one ORB detector per thread (see prepare)
         self._noise = self.config.noise_model()
-        self._frame_noise = self.config.frame_noise()
         self._ref: FrameData | None = None  # the reference (key)frame
         self._ref_step: OdometryStep | None = None
         self._last: tuple[FrameData, OdometryStep] | None = None  # the last tracked frame
@@ -354,7 +365,7 @@ class VisualOdometry:
         step.status = "tracked"
         step.relative = res.pose
         step.velocity = gtsam.Pose3.Logmap(res.pose) / dt if dt > 0 else None
-        step.covariance = res.covariance + self._frame_noise * self.config.frame_intervals(dt)
+        step.covariance = res.covariance + self.config.frame_noise(dt)
         step.result = res
         step.pose = ref_step.pose.compose(res.pose)
         step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, res.pose, step.covariance)

@@ -24,7 +24,8 @@ from .estimator import estimate_relative_pose
 from .factors import WEIGHTINGS
 from .geometry import pose_from_tum
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
-from .validation import check_choice, check_int, check_real, is_real
+from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, check_choice, check_int, check_real,
+                         is_real)
 
 #: The thesis's motion, TUM order tx ty tz qx qy qz qw (quaternion normalised on use).
 THESIS_MOTION = (0.6, 0.6, 0.05, -0.183, -0.183, 0.0, 0.966)
@@ -35,7 +36,6 @@ THESIS_MOTION = (0.6, 0.6, 0.05, -0.183, -0.183, 0.0, 0.966)
 #: beyond 100 m the Kinect depth model's sigma exceeds 19 m and is meaningless).
 MAX_RUNS = 1_000_000
 MAX_POINTS = 100_000
-MIN_PIXEL_SIGMA = 0.01
 MAX_DEPTH = 100.0
 
 
@@ -45,7 +45,8 @@ class SimulationConfig:
     (:class:`ConfigError` naming the field).
 
     ``runs`` (1 to :data:`MAX_RUNS`), ``seed`` (integer >= 0), ``num_points`` (3 to
-    :data:`MAX_POINTS`), ``pixel_sigma`` (pixels, >= :data:`MIN_PIXEL_SIGMA`), ``depth_range``
+    :data:`MAX_POINTS`), ``pixel_sigma`` (pixels, ``MIN_PIXEL_SIGMA`` to ``MAX_PIXEL_SIGMA`` of
+    :mod:`covo_gtsam.validation`), ``depth_range``
     ``(min, max)`` metres with ``0 < min < max <= MAX_DEPTH``, ``weighting``, ``scale`` (> 0),
     ``motion`` (``tx ty tz qx qy qz qw``), ``camera`` (a preset name) and ``depth_model`` (with a
     ``sigma(z, theta)`` method).
@@ -66,8 +67,8 @@ class SimulationConfig:
         check_int("runs", self.runs, 1, MAX_RUNS)
         check_int("seed", self.seed, 0)
         check_int("num_points", self.num_points, 3, MAX_POINTS)
-        check_real("pixel_sigma", self.pixel_sigma, "positive", minimum=MIN_PIXEL_SIGMA)
-        check_real("scale", self.scale, "positive")
+        check_real("pixel_sigma", self.pixel_sigma, "positive", MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA)
+        check_real("scale", self.scale, "positive", maximum=MAX_SCALE)
         check_choice("weighting", self.weighting, WEIGHTINGS)
         try:
             zmin, zmax = self.depth_range

@@ -13,6 +13,11 @@ import numpy as np
 
 from .errors import ConfigError
 
+#: Sanity limits shared by the configurations and the command line: beyond them the models are
+#: meaningless and float arithmetic overflows. Pixel noise in pixels, covariance scale phi.
+MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA = 0.01, 1e4
+MAX_SCALE = 1e6
+
 
 def is_int(value) -> bool:
     """An integer (Python or numpy), not a bool."""

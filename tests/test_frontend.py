@@ -177,7 +177,7 @@ def test_match_blockwise_equals_single_block(frames, monkeypatch):
 @pytest.mark.parametrize("norm, hamming2", [(cv2.NORM_HAMMING, False), (cv2.NORM_HAMMING2, True)])
 def test_hamming_distances_equal_opencv_norm(norm, hamming2, lookup_table, monkeypatch):
     if lookup_table:
-        monkeypatch.setattr(fe, "_HAS_BITWISE_COUNT", False)
+        monkeypatch.setattr(fe, "_POPCOUNT16", fe._popcount_table())
     rng = np.random.default_rng(3)
     a = rng.integers(0, 256, (37, 32), dtype=np.uint8)
     b = rng.integers(0, 256, (29, 32), dtype=np.uint8)

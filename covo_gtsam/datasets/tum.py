@@ -156,13 +156,14 @@ class TumSequence:
     Attributes: ``path`` (absolute), ``name`` (folder name), ``camera_name`` (``"fr1"``/``"fr2"``/
     ``"fr3"`` from the folder name, or None), ``timestamps`` (colour stamps of the frames, s, (K,)),
     ``rgb_paths`` / ``depth_paths`` (absolute paths), ``groundtruth`` (T_world,cam (K, 4, 4) at the
-    frame stamps, or None without ``groundtruth.txt``) and ``gt_valid`` (K,) bool.
+    frame stamps, or None without ``groundtruth.txt``), ``gt_valid`` (K,) bool and
+    ``missing_files`` (listed image files that do not exist; their frames are reported lost when read).
     ``camera`` is the given camera (a :class:`~covo_gtsam.camera.Camera`, or a preset name such as
     ``"fr1"``, which must be known: :class:`ConfigError` otherwise), else the preset named by
     ``camera_name`` (reading it raises :class:`DatasetError` when neither is known).
 
     Raises :class:`DatasetError` when the folder, ``rgb.txt`` or ``depth.txt`` is missing, a line
-    is malformed, no frame can be associated, or a listed file of an associated frame is missing.
+    is malformed, no frame can be associated, or no associated frame has both of its images.
     """
 
     def __init__(self, path: str | os.PathLike, camera=None, max_dt: float = 0.02, max_gap: float = 0.1) -> None:
@@ -185,11 +186,12 @@ class TumSequence:
         self.rgb_paths = [str(self.path / rgb_n[i]) for i, _ in pairs]
         self.depth_paths = [str(self.path / dep_n[j]) for _, j in pairs]
         # A listed file that is missing makes its frame lost when it is read (the run goes on);
-        # when none of the listed images exists the folder itself is wrong.
+        # when no frame has both of its images the folder itself is wrong.
         self.missing_files = [p for pair in zip(self.rgb_paths, self.depth_paths) for p in pair if not os.path.isfile(p)]
-        if len(self.missing_files) == 2 * len(self.rgb_paths):
-            raise DatasetError(f"{self.path}: none of the images listed in rgb.txt and depth.txt exists "
-                               f"(e.g. {self.rgb_paths[0]})")
+        missing = set(self.missing_files)
+        if all(rp in missing or dp in missing for rp, dp in zip(self.rgb_paths, self.depth_paths)):
+            raise DatasetError(f"{self.path}: no frame has both its colour and its depth image "
+                               f"(e.g. {self.missing_files[0]} does not exist)")
         self.camera_name = camera_name_from_path(self.path)
         if isinstance(camera, str):  # a preset name
             from ..camera import Camera
