@@ -13,8 +13,9 @@ Per frame (:func:`prepare_frame`, computed once and reused for the next pair):
 Per frame pair (:func:`associate_frames`):
 
 4. Brute-force Hamming matching with cross-check among keypoints with valid depth (:func:`match`,
-   ``np.bitwise_count`` (a 16-bit lookup table on numpy < 2) on XORed uint64 descriptor words; same matches as
-   ``cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)``), then the best ``keep_ratio`` by distance.
+   ``np.bitwise_count`` (a 16-bit lookup table on numpy < 2) on XORed uint64 descriptor words;
+   same matches as ``cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)``), then the best
+   ``keep_ratio`` by distance.
 5. Outlier rejection: ``"rigid3d"`` (default) RANSAC of a rigid transform over 3-point samples with
    a Mahalanobis inlier test using the point covariances (:func:`ransac_rigid3d`),
    ``"homography"`` (the thesis's C++ code: ``cv2.findHomography`` RANSAC at ``ransac_px``) or
@@ -313,6 +314,8 @@ def _as_words(f: Features | np.ndarray) -> np.ndarray:
 
 
 _HAMMING2_MASK = np.uint64(0x5555555555555555)
+
+
 def _bitcount(x: np.ndarray, out: np.ndarray) -> np.ndarray:
     """Number of set bits of each uint64 of ``x`` into ``out`` (uint8 or uint16):
     ``np.bitwise_count`` on numpy >= 2, else a 16-bit lookup table (about 13 times slower)."""

@@ -89,11 +89,11 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path] |
     plt = _plt()
     if plt is None:
         return None
-    for name in RUN_PLOTS:
-        (Path(out_dir) / name).unlink(missing_ok=True)
     from .evaluation import RPE_DELTAS, ground_truth_lookup, relative_ground_truth, segment_rpe_errors, tracked_segments
 
     out_dir = Path(out_dir)
+    for name in RUN_PLOTS:  # a figure this run cannot make must not survive from an earlier one
+        (out_dir / name).unlink(missing_ok=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     gt = ground_truth_lookup(seq)

@@ -46,8 +46,8 @@ class SimulationConfig:
 
     ``runs`` (1 to :data:`MAX_RUNS`), ``seed`` (integer >= 0), ``num_points`` (3 to
     :data:`MAX_POINTS`), ``pixel_sigma`` (pixels, ``MIN_PIXEL_SIGMA`` to ``MAX_PIXEL_SIGMA`` of
-    :mod:`covo_gtsam.validation`), ``depth_range``
-    ``(min, max)`` metres with ``0 < min < max <= MAX_DEPTH``, ``weighting``, ``scale`` (> 0),
+    :mod:`covo_gtsam.validation`), ``depth_range`` ``(min, max)`` metres with
+    ``0 < min < max <= MAX_DEPTH``, ``weighting``, ``scale`` (> 0, at most ``MAX_SCALE``),
     ``motion`` (``tx ty tz qx qy qz qw``), ``camera`` (a preset name) and ``depth_model`` (with a
     ``sigma(z, theta)`` method).
     """

@@ -18,6 +18,7 @@ from covo_gtsam.factors import (
     whitened_system,
     whitening,
 )
+from covo_gtsam.factors import whitened_error as numpy_whitened_error
 
 K0, K1 = gtsam.symbol("x", 0), gtsam.symbol("x", 1)
 
@@ -121,11 +122,10 @@ def whitened_error(factor, values):
 
 
 def stacked_error(X_k, X_k1, C_b, C_f):
-    """Pose -> the 6N whitened two-way error, computed in numpy (the vectorised factors' model)."""
+    """Pose -> the 6N whitened two-way error in numpy (:func:`factors.whitened_error`, the
+    vectorised factors' model; differentiated numerically, never through the analytic Jacobian)."""
     W_b, W_f = whitening(C_b), whitening(C_f)
-    return lambda P: np.concatenate([np.einsum("nij,nj->ni", W_b, r).ravel() if k == 0 else
-                                     np.einsum("nij,nj->ni", W_f, r).ravel() for k, r in
-                                     enumerate(transfer_residuals(P.rotation().matrix(), P.translation(), X_k, X_k1))])
+    return lambda P: numpy_whitened_error(P.rotation().matrix(), P.translation(), X_k, X_k1, W_b, W_f)
 
 
 def assert_linearisation(factor, values, A, e, J_num, e_num):
