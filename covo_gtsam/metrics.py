@@ -15,6 +15,7 @@ from .geometry import invert_pose, rotation_angle, skew
 
 __all__ = [
     "anees",
+    "relative_pose_tangent_errors",
     "ate",
     "ate_errors",
     "ate_statistics",
@@ -185,6 +186,13 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     return np.concatenate([omega, v], axis=1).reshape(shape + (6,))
 
 
+def relative_pose_tangent_errors(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """Errors ``xi = Log(T_est^-1 T_true)`` (N, 6) of estimated against true poses (N, 4, 4), in
+    GTSAM's tangent ``[omega, v]`` (rad, m) with the right perturbation ``T_true = T_est * Exp(xi)``."""
+    T_est, T_true = _pose_pair(T_est, T_true)
+    return se3_log(invert_pose(T_est) @ T_true)
+
+
 def relative_pose_nees(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """NEES of the rotation and of the translation (3 dof each) of relative poses.
 
@@ -194,11 +202,10 @@ def relative_pose_nees(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -
     ``nees_rot`` uses ``xi[:3]`` with ``cov[:3, :3]``, ``nees_trans`` uses ``xi[3:]`` with ``cov[3:, 3:]``.
     Returns ``(nees_rot (N,), nees_trans (N,))``.
     """
-    T_est, T_true = _pose_pair(T_est, T_true)
+    xi = relative_pose_tangent_errors(T_est, T_true)
     cov = np.asarray(cov, dtype=float)
-    if cov.shape != (T_est.shape[0], 6, 6):
-        raise InputError(f"need covariances ({T_est.shape[0]}, 6, 6), got {cov.shape}")
-    xi = se3_log(invert_pose(T_est) @ T_true)
+    if cov.shape != (xi.shape[0], 6, 6):
+        raise InputError(f"need covariances ({xi.shape[0]}, 6, 6), got {cov.shape}")
     return nees(xi[:, :3], cov[:, :3, :3]), nees(xi[:, 3:], cov[:, 3:, 3:])
 
 

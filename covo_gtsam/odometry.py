@@ -17,6 +17,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from .calibration import frame_covariance, sensor_covariance
 from .camera import Camera
 from .covariance import compose_covariance
 from .errors import ConfigError, CovoError, EstimationError, InputError
@@ -43,6 +44,7 @@ _REAL_LIMITS = {
     "keyframe_ratio": ("positive", None, 1.0),
     "max_rotation_deg": ("positive", None, 180.0),
     "max_translation_m": ("positive", None, 1e3),
+    "correlation_factor": ("positive", None, MAX_SCALE),
     "frame_sigma_rot_deg": ("non-negative", None, 180.0),
     "frame_sigma_trans_m": ("non-negative", None, 1e3),
     "frame_interval_s": ("positive", 1e-4, 1e3),
@@ -54,21 +56,30 @@ _REAL_LIMITS = {
 class OdometryConfig:
     """Settings of :class:`VisualOdometry` (front end, noise model, estimator).
 
-    ``pixel_sigma`` (pixels) is the conic-ray noise of the keypoints. ``frame_sigma_rot_deg`` and
-    ``frame_sigma_trans_m`` are per-axis standard deviations of an error common to all points
-    of a frame pair (depth-image and synchronisation errors of the Kinect v1 that the per-point
-    model cannot see), per frame interval ``frame_interval_s`` (the camera's nominal frame period).
-    This error behaves like a random walk over frame intervals, so a pair ``k`` intervals apart
-    (after lost frames, or against a keyframe) gets ``k`` times that covariance
-    (:meth:`frame_intervals`). Defaults are calibrated once for the sensor on consecutive frames of
-    the first half of the shared fr1_rpy frames, see docs/consistency.md.
+    ``pixel_sigma`` (pixels) is the conic-ray noise of the keypoints. The per-point model treats
+    the points' errors as independent; a real Kinect v1 also has errors shared by the points of a
+    frame pair (depth-image distortion correlated over the image, colour/depth synchronisation),
+    which the post-fit residuals cannot show. The reported covariance of a pair is therefore
+    ``correlation_factor * C_points + frame_noise(dt)`` (:meth:`sensor_covariance`):
+    ``C_points`` is the estimator's covariance from the per-point model, ``correlation_factor``
+    (kappa) inflates it for errors correlated between the points, and ``frame_sigma_rot_deg`` /
+    ``frame_sigma_trans_m`` are per-axis standard deviations of an error common to the whole
+    pair, per frame interval ``frame_interval_s`` (the camera's nominal frame period). For a pair
+    ``k`` intervals apart (after lost frames, or against a keyframe; :meth:`frame_intervals`) the
+    rotation variance grows like a random walk, ``k`` times, and the translation variance ``k^2``
+    times (the error persists over the intervals); see :mod:`covo_gtsam.calibration`.
+    The three defaults are a maximum-likelihood fit for the sensor on the consecutive pairs of the
+    first half of the shared fr1_rpy frames (:func:`covo_gtsam.calibration.fit_sensor_terms`),
+    checked on data the fit has not seen; see docs/consistency.md. ``correlation_factor = 1`` and
+    zero frame sigmas give the per-point model alone (right for the simulation).
 
     ``motion_model``: ``"constant_velocity"`` predicts ``T_ref,cur`` from the motion between the
     last two tracked frames (scaled by the time elapsed); the prediction is an extra RANSAC
     hypothesis and, without RANSAC, the initial guess. ``"none"``: no prediction.
 
-    ``scale`` (the thesis's phi) multiplies each pair's point-transfer covariance from the
-    estimator; the frame-level term is added after it, unscaled.
+    ``scale`` (the thesis's phi, hand-set there) multiplies each pair's point-transfer covariance
+    inside the estimator, so ``C_points`` above includes it; keep it at 1 and let the calibrated
+    ``correlation_factor`` do that job.
 
     ``robust`` (``"huber"``/``"cauchy"``) and ``variance_factor`` select the estimator's robust
     re-weighting and a-posteriori variance scaling (see :func:`estimate_relative_pose`).
@@ -114,8 +125,9 @@ class OdometryConfig:
     variance_factor: bool = False
     max_rotation_deg: float = 30.0
     max_translation_m: float = 0.5
-    frame_sigma_rot_deg: float = 0.30
-    frame_sigma_trans_m: float = 0.0041
+    correlation_factor: float = 10.8
+    frame_sigma_rot_deg: float = 0.22
+    frame_sigma_trans_m: float = 0.0018
     frame_interval_s: float = 1.0 / 30.0
     restart_after: int = 5
     rolling_shutter_s: float = 0.025
@@ -142,11 +154,19 @@ class OdometryConfig:
         return np.diag([r, r, r, t, t, t])
 
     def frame_noise(self, dt: float | None = None) -> np.ndarray:
-        """6x6 frame-level covariance (tangent [omega, v]) added to a relative pose whose frames are
-        ``dt`` seconds apart: :meth:`frame_intervals` times the per-interval term (once if None)."""
-        r = np.deg2rad(self.frame_sigma_rot_deg) ** 2
-        t = self.frame_sigma_trans_m**2
-        return np.diag([r, r, r, t, t, t]) * (1 if dt is None else self.frame_intervals(dt))
+        """6x6 frame term (tangent [omega, v]) of a pair whose frames are ``dt`` seconds apart,
+        ``k = frame_intervals(dt)`` (1 if None): per axis ``frame_sigma_rot_deg^2 k`` and
+        ``frame_sigma_trans_m^2 k^2`` (:func:`covo_gtsam.calibration.frame_covariance`)."""
+        k = 1 if dt is None else self.frame_intervals(dt)
+        return frame_covariance(np.deg2rad(self.frame_sigma_rot_deg), self.frame_sigma_trans_m, k)
+
+    def sensor_covariance(self, point_covariance: np.ndarray, dt: float | None = None) -> np.ndarray:
+        """Reported 6x6 covariance of a pair whose frames are ``dt`` seconds apart, from the
+        estimator's per-point covariance (tangent [omega, v]):
+        ``correlation_factor * point_covariance + frame_noise(dt)``."""
+        k = 1 if dt is None else self.frame_intervals(dt)
+        return sensor_covariance(point_covariance, self.correlation_factor, np.deg2rad(self.frame_sigma_rot_deg),
+                                 self.frame_sigma_trans_m, k)
 
     def frame_intervals(self, dt: float) -> int:
         """Frame intervals between two frames ``dt`` seconds apart: ``round(dt / frame_interval_s)``,
@@ -365,7 +385,7 @@ class VisualOdometry:
         step.status = "tracked"
         step.relative = res.pose
         step.velocity = gtsam.Pose3.Logmap(res.pose) / dt if dt > 0 else None
-        step.covariance = res.covariance + self.config.frame_noise(dt)
+        step.covariance = self.config.sensor_covariance(res.covariance, dt)
         step.result = res
         step.pose = ref_step.pose.compose(res.pose)
         step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, res.pose, step.covariance)

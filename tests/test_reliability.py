@@ -597,8 +597,9 @@ def test_cli_version_and_help(capsys):
 
 
 def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
-    """Frames 0, 1 and then 3 (frame 2 skipped): the pair (1, 3) spans two intervals and gets twice
-    the per-interval frame term on top of the estimator's covariance; consecutive pairs once."""
+    """Frames 0, 1 and then 3 (frame 2 skipped): the pair (1, 3) spans two intervals, so its frame
+    term has twice the per-interval rotation variance and four times the translation variance;
+    the reported covariance is kappa times the estimator's plus that term."""
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.frontend import load_depth, load_grey
     from covo_gtsam.odometry import OdometryConfig
@@ -611,5 +612,9 @@ def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
     assert [s.status for s in steps] == ["first", "tracked", "tracked"]
     for step, k in ((steps[1], 1), (steps[2], 2)):
         assert cfg.frame_intervals(step.timestamp - step.ref_timestamp) == k
-        np.testing.assert_allclose(step.covariance - step.result.covariance, k * cfg.frame_noise(), rtol=1e-12)
+        r2, t2 = np.deg2rad(cfg.frame_sigma_rot_deg) ** 2, cfg.frame_sigma_trans_m**2
+        frame = np.diag([r2 * k] * 3 + [t2 * k * k] * 3)
+        np.testing.assert_allclose(cfg.frame_noise(step.timestamp - step.ref_timestamp), frame, rtol=1e-12)
+        np.testing.assert_allclose(step.covariance, cfg.correlation_factor * step.result.covariance + frame,
+                                   rtol=1e-12)
     assert cfg.frame_intervals(0.0) == 1 and cfg.frame_intervals(0.040) == 1 and cfg.frame_intervals(0.1) == 3

@@ -1,0 +1,112 @@
+"""Sensor-level terms of the relative-pose covariance, and their maximum-likelihood fit.
+
+The per-point model (pixel and depth noise, propagated through the estimator) treats the points'
+errors as independent. A real RGB-D sensor also has errors shared by the points of a frame pair,
+which the post-fit residuals cannot show. covo reports, for a pair ``k`` frame intervals apart::
+
+    C = kappa * C_points + diag(s_r^2 k, s_r^2 k, s_r^2 k, s_t^2 k^2, s_t^2 k^2, s_t^2 k^2)
+
+in GTSAM's tangent ``[rx ry rz tx ty tz]`` (radians, metres; right perturbation). ``kappa``
+inflates the per-point covariance for errors correlated between points; ``s_r`` (rad) is a
+rotation error per interval that adds up like a random walk (timestamp jitter is independent from
+frame to frame); ``s_t`` (m) is a translation error per interval that persists over the intervals
+of a pair (it comes with the scene's depth errors), so its standard deviation grows with ``k``.
+The growth laws were chosen on keyframe pairs spanning 1-15 intervals (docs/consistency.md).
+
+:func:`fit_sensor_terms` estimates ``kappa, s_r, s_t`` from the errors of consecutive pairs
+against ground truth, by maximising the Gaussian likelihood; it needs SciPy
+(``pip install "covo-gtsam[calibrate]"``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["SensorTerms", "frame_covariance", "sensor_covariance", "log_likelihood", "fit_sensor_terms"]
+
+
+@dataclass(frozen=True)
+class SensorTerms:
+    """Fitted sensor terms: ``correlation_factor`` (kappa), per-interval standard deviations
+    ``frame_sigma_rot_deg`` (degrees per axis) and ``frame_sigma_trans_m`` (metres per axis), the
+    mean log-likelihood per pair at the fit and the number of pairs it used."""
+
+    correlation_factor: float
+    frame_sigma_rot_deg: float
+    frame_sigma_trans_m: float
+    log_likelihood: float
+    pairs: int
+
+
+def frame_covariance(sigma_rot_rad: float, sigma_trans_m: float, intervals: np.ndarray | int = 1) -> np.ndarray:
+    """Frame term(s) (..., 6, 6) of pairs ``intervals`` (...,) frame intervals apart:
+    ``diag(s_r^2 k (x3), s_t^2 k^2 (x3))``, tangent ``[omega, v]``."""
+    k = np.asarray(intervals, dtype=float)[..., None]
+    diag = np.concatenate([np.broadcast_to(sigma_rot_rad**2 * k, k.shape[:-1] + (3,)),
+                           np.broadcast_to(sigma_trans_m**2 * k**2, k.shape[:-1] + (3,))], axis=-1)
+    return diag[..., :, None] * np.eye(6)
+
+
+def sensor_covariance(point_cov: np.ndarray, correlation_factor: float, sigma_rot_rad: float,
+                      sigma_trans_m: float, intervals: np.ndarray | int = 1) -> np.ndarray:
+    """Reported covariance(s) ``kappa * C_points + frame_covariance(s_r, s_t, k)``.
+
+    ``point_cov`` (..., 6, 6) and ``intervals`` (...,) broadcast; tangent ``[omega, v]``.
+    """
+    return correlation_factor * np.asarray(point_cov, dtype=float) + frame_covariance(
+        sigma_rot_rad, sigma_trans_m, intervals)
+
+
+def log_likelihood(errors: np.ndarray, covs: np.ndarray) -> float:
+    """Mean Gaussian log-likelihood per pair of errors (N, d) under covariances (N, d, d), without
+    the constant ``-d/2 log(2 pi)``: ``mean(-1/2 e^T C^-1 e - 1/2 log det C)``."""
+    errors = np.asarray(errors, dtype=float)
+    covs = np.asarray(covs, dtype=float)
+    if errors.ndim != 2 or covs.shape != errors.shape + (errors.shape[1],):
+        raise InputError(f"need errors (N, d) and covariances (N, d, d), got {errors.shape} and {covs.shape}")
+    sign, logdet = np.linalg.slogdet(covs)
+    if np.any(sign <= 0):
+        return -np.inf
+    q = np.einsum("ni,ni->n", errors, np.linalg.solve(covs, errors[..., None])[..., 0])
+    return float(np.mean(-0.5 * q - 0.5 * logdet))
+
+
+def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray) -> SensorTerms:
+    """Maximum-likelihood ``kappa, s_r, s_t`` from consecutive pairs (one interval each).
+
+    ``errors`` (N, 6): ``Log(T_est^-1 T_true)`` of each pair
+    (:func:`covo_gtsam.metrics.relative_pose_tangent_errors`; right perturbation, ``[omega, v]``);
+    ``point_covs`` (N, 6, 6): the estimator's per-point covariance of the same pairs (run with
+    ``correlation_factor = 1`` and zero frame sigmas). Needs at least 10 pairs.
+    """
+    errors = np.asarray(errors, dtype=float)
+    point_covs = np.asarray(point_covs, dtype=float)
+    if errors.ndim != 2 or errors.shape[1] != 6 or point_covs.shape != errors.shape + (6,):
+        raise InputError(f"need errors (N, 6) and covariances (N, 6, 6), got {errors.shape} and {point_covs.shape}")
+    if len(errors) < 10:
+        raise InputError(f"need at least 10 pairs to fit the sensor terms, got {len(errors)}")
+    if not (np.all(np.isfinite(errors)) and np.all(np.isfinite(point_covs))):
+        raise InputError("errors and covariances must be finite")
+    try:
+        from scipy.optimize import minimize
+    except ImportError as exc:  # pragma: no cover - depends on the installation
+        raise ImportError('fitting the sensor terms needs SciPy: pip install "covo-gtsam[calibrate]"') from exc
+
+    def cost(x: np.ndarray) -> float:
+        kappa, s_r, s_t = np.exp(x)
+        return -log_likelihood(errors, sensor_covariance(point_covs, kappa, s_r, s_t))
+
+    # start from moment matching: kappa 1, frame variances = mean squared error per axis
+    start = np.log([1.0, np.sqrt(np.mean(errors[:, :3] ** 2)) + 1e-9, np.sqrt(np.mean(errors[:, 3:] ** 2)) + 1e-9])
+    best = None
+    for shift in (0.0, 1.0, 2.0, 3.0):
+        x0 = start + np.array([shift, -0.3 * shift, -0.3 * shift])
+        res = minimize(cost, x0, method="Nelder-Mead", options={"maxiter": 4000, "xatol": 1e-6, "fatol": 1e-10})
+        if best is None or res.fun < best.fun:
+            best = res
+    kappa, s_r, s_t = np.exp(best.x)
+    return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors))

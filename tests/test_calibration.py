@@ -1,0 +1,84 @@
+"""Sensor terms of the reported covariance: growth law, likelihood, maximum-likelihood fit."""
+
+import numpy as np
+import pytest
+
+from covo_gtsam.calibration import fit_sensor_terms, frame_covariance, log_likelihood, sensor_covariance
+from covo_gtsam.errors import InputError
+from covo_gtsam.odometry import OdometryConfig
+
+
+def _random_spd(rng, n):
+    A = rng.normal(size=(n, 6, 6)) * np.array([1e-3] * 3 + [1e-3] * 3)
+    return A @ A.transpose(0, 2, 1) + 1e-8 * np.eye(6)
+
+
+def test_frame_covariance_rotation_random_walk_translation_persistent():
+    s_r, s_t = 0.004, 0.002
+    for k in (1, 2, 5):
+        C = frame_covariance(s_r, s_t, k)
+        np.testing.assert_allclose(np.diag(C), [s_r**2 * k] * 3 + [s_t**2 * k**2] * 3)
+        assert np.count_nonzero(C - np.diag(np.diag(C))) == 0
+    batch = frame_covariance(s_r, s_t, np.array([1, 3]))
+    np.testing.assert_allclose(batch[1], frame_covariance(s_r, s_t, 3))
+
+
+def test_sensor_covariance_scales_points_and_adds_frame_term():
+    rng = np.random.default_rng(0)
+    P = _random_spd(rng, 4)
+    C = sensor_covariance(P, 10.0, 0.004, 0.002, np.array([1, 1, 2, 3]))
+    for i, k in enumerate([1, 1, 2, 3]):
+        np.testing.assert_allclose(C[i], 10.0 * P[i] + frame_covariance(0.004, 0.002, k))
+
+
+def test_config_sensor_covariance_uses_the_interval_count():
+    cfg = OdometryConfig()
+    P = np.diag([1e-6] * 3 + [1e-6] * 3)
+    dt = 2 * cfg.frame_interval_s
+    expected = sensor_covariance(P, cfg.correlation_factor, np.deg2rad(cfg.frame_sigma_rot_deg),
+                                 cfg.frame_sigma_trans_m, 2)
+    np.testing.assert_allclose(cfg.sensor_covariance(P, dt), expected)
+    np.testing.assert_allclose(cfg.sensor_covariance(P, dt) - cfg.correlation_factor * P, cfg.frame_noise(dt))
+
+
+def test_log_likelihood_matches_gaussian_density():
+    rng = np.random.default_rng(1)
+    C = _random_spd(rng, 3)
+    e = rng.normal(size=(3, 6)) * 1e-3
+    ref = np.mean([-0.5 * x @ np.linalg.solve(c, x) - 0.5 * np.log(np.linalg.det(c)) for x, c in zip(e, C)])
+    assert log_likelihood(e, C) == pytest.approx(ref, rel=1e-10)
+    with pytest.raises(InputError):
+        log_likelihood(e, C[:, :5, :5])
+
+
+def test_fit_recovers_the_terms_errors_were_drawn_with():
+    """Errors drawn from kappa*P + frame term (2000 pairs) give back kappa, s_r and s_t."""
+    rng = np.random.default_rng(2)
+    n = 2000
+    # per-point covariances of varying size and shape, like real pairs
+    P = _random_spd(rng, n) * rng.uniform(0.2, 3.0, size=(n, 1, 1)) * 0.02
+    kappa, s_r, s_t = 8.0, np.deg2rad(0.2), 0.002
+    C = sensor_covariance(P, kappa, s_r, s_t)
+    e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=(n, 6)))
+    fit = fit_sensor_terms(e, P)
+    assert fit.pairs == n
+    assert fit.correlation_factor == pytest.approx(kappa, rel=0.15)
+    assert fit.frame_sigma_rot_deg == pytest.approx(0.2, rel=0.1)
+    assert fit.frame_sigma_trans_m == pytest.approx(0.002, rel=0.1)
+    assert fit.log_likelihood == pytest.approx(log_likelihood(e, sensor_covariance(
+        P, fit.correlation_factor, np.deg2rad(fit.frame_sigma_rot_deg), fit.frame_sigma_trans_m)))
+    # the fit is a maximum: the true parameters do not score higher
+    assert fit.log_likelihood >= log_likelihood(e, C) - 1e-9
+
+
+def test_fit_rejects_bad_input():
+    rng = np.random.default_rng(3)
+    P = _random_spd(rng, 5)
+    with pytest.raises(InputError, match="at least 10"):
+        fit_sensor_terms(np.zeros((5, 6)), P)
+    with pytest.raises(InputError, match=r"\(N, 6\)"):
+        fit_sensor_terms(np.zeros((12, 3)), _random_spd(rng, 12))
+    e = np.zeros((12, 6))
+    e[0, 0] = np.nan
+    with pytest.raises(InputError, match="finite"):
+        fit_sensor_terms(e, _random_spd(rng, 12))
