@@ -75,8 +75,9 @@ def log_likelihood(errors: np.ndarray, covs: np.ndarray) -> float:
     return float(np.mean(-0.5 * q - 0.5 * logdet))
 
 
-def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray) -> SensorTerms:
-    """Maximum-likelihood ``kappa, s_r, s_t`` from consecutive pairs (one interval each).
+def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation_factor: bool = True) -> SensorTerms:
+    """Maximum-likelihood ``kappa, s_r, s_t`` from consecutive pairs (one interval each); with
+    ``fit_correlation_factor=False`` kappa stays 1 and only the frame term is fitted.
 
     ``errors`` (N, 6): ``Log(T_est^-1 T_true)`` of each pair
     (:func:`covo_gtsam.metrics.relative_pose_tangent_errors`; right perturbation, ``[omega, v]``);
@@ -96,17 +97,21 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray) -> SensorTerms:
     except ImportError as exc:  # pragma: no cover - depends on the installation
         raise ImportError('fitting the sensor terms needs SciPy: pip install "covo-gtsam[calibrate]"') from exc
 
-    def cost(x: np.ndarray) -> float:
-        kappa, s_r, s_t = np.exp(x)
-        return -log_likelihood(errors, sensor_covariance(point_covs, kappa, s_r, s_t))
+    def params(x: np.ndarray) -> tuple[float, float, float]:
+        return tuple(np.exp(x)) if fit_correlation_factor else (1.0, *np.exp(x))
 
-    # start from moment matching: kappa 1, frame variances = mean squared error per axis
+    def cost(x: np.ndarray) -> float:
+        return -log_likelihood(errors, sensor_covariance(point_covs, *params(x)))
+
+    # start from moment matching: kappa 1, frame variances = mean squared error per axis, then
+    # from larger kappa and smaller frame terms (the likelihood can have more than one maximum)
     start = np.log([1.0, np.sqrt(np.mean(errors[:, :3] ** 2)) + 1e-9, np.sqrt(np.mean(errors[:, 3:] ** 2)) + 1e-9])
     best = None
-    for shift in (0.0, 1.0, 2.0, 3.0):
+    for shift in (0.0, 1.0, 2.0, 3.0) if fit_correlation_factor else (0.0,):
         x0 = start + np.array([shift, -0.3 * shift, -0.3 * shift])
+        x0 = x0 if fit_correlation_factor else x0[1:]
         res = minimize(cost, x0, method="Nelder-Mead", options={"maxiter": 4000, "xatol": 1e-6, "fatol": 1e-10})
         if best is None or res.fun < best.fun:
             best = res
-    kappa, s_r, s_t = np.exp(best.x)
+    kappa, s_r, s_t = params(best.x)
     return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors))

@@ -246,8 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", metavar="FILE", help="TOML or JSON settings (see README: configuration)")
     run.add_argument("--weighting", choices=WEIGHTINGS, help="residual weighting (default: consistent)")
     run.add_argument("--scale", type=_float_in(maximum=MAX_SCALE), metavar="PHI",
-                     help="covariance scale phi: multiplies each pair's point-transfer covariance; the "
-                     "frame term is added after (default 1)")
+                     help="the thesis's covariance scale phi: multiplies each pair's point-transfer "
+                     "covariance inside the estimator; the calibrated sensor terms are applied after (default 1)")
     _output_arguments(run)
     run.set_defaults(func=cmd_run)
 

@@ -593,7 +593,7 @@ def test_cli_version_and_help(capsys):
     with pytest.raises(SystemExit):
         main(["run", "--help"])
     out = capsys.readouterr().out
-    assert "default: all" in out and "frame term" in out and "[rx ry rz tx ty tz]" in out
+    assert "default: all" in out and "calibrated sensor terms" in out and "[rx ry rz tx ty tz]" in out
 
 
 def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
