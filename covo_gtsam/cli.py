@@ -1,4 +1,4 @@
-"""Command line: ``covo run``, ``covo simulate``, ``covo analyze-noise``.
+"""Command line: ``covo run``, ``covo simulate``, ``covo analyze-noise``, ``covo calibrate``.
 
 Every failure the package knows about ends with exit code 2 and one line on stderr naming the
 file and the problem; no traceback.
@@ -182,6 +182,37 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    import importlib.util
+
+    from .camera import Camera
+    from .datasets.tum import TumSequence
+    from .io import write_json
+    from .odometry import OdometryConfig
+    from .pipeline import calibrate_sequence, check_output_dir
+
+    if importlib.util.find_spec("scipy") is None:
+        raise CovoError('calibrate needs SciPy: pip install "covo-gtsam[calibrate]" (or pip install scipy)')
+    config = load_config_file(args.config) if args.config else OdometryConfig()
+    seq = TumSequence(args.sequence, camera=Camera.preset(args.camera) if args.camera else None)
+    out = check_output_dir(Path(args.out))
+    fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
+                                     progress=not args.quiet)
+    summary = {"sequence": seq.name, "pairs": fit.pairs, "correlation_factor": fit.correlation_factor,
+               "frame_sigma_rot_deg": fit.frame_sigma_rot_deg, "frame_sigma_trans_m": fit.frame_sigma_trans_m,
+               "log_likelihood_per_pair": fit.log_likelihood,
+               "per_point_model_anees": [result.metrics.get("anees_translation"), result.metrics.get("anees_rotation")]}
+    write_json(out / "calibration.json", summary)
+    print(f"{fit.pairs} consecutive pairs with ground truth; the per-point model alone gives ANEES t "
+          f"{summary['per_point_model_anees'][0]:.2f} r {summary['per_point_model_anees'][1]:.2f} (3 = consistent)")
+    print("maximum-likelihood sensor terms (configuration lines):")
+    print(f"correlation_factor = {fit.correlation_factor:.3g}")
+    print(f"frame_sigma_rot_deg = {fit.frame_sigma_rot_deg:.3g}")
+    print(f"frame_sigma_trans_m = {fit.frame_sigma_trans_m:.3g}")
+    print(f"results in {out}")
+    return 0
+
+
 def _plots_missing() -> None:
     from .plots import PLOTS_MISSING
 
@@ -195,10 +226,11 @@ def _sequence_arguments(parser: argparse.ArgumentParser, help: str) -> None:
                         help="camera preset (default: guessed from the folder name, e.g. 'freiburg1' -> fr1)")
 
 
-def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT") -> None:
-    """``--out`` (required), ``--no-plots`` and ``--quiet``, common to every command."""
+def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT", plots: bool = True) -> None:
+    """``--out`` (required), ``--no-plots`` (if the command plots) and ``--quiet``, common to every command."""
     parser.add_argument("--out", required=True, metavar=metavar, help="results folder (created if missing)")
-    parser.add_argument("--no-plots", action="store_true", help="do not write plots/")
+    if plots:
+        parser.add_argument("--no-plots", action="store_true", help="do not write plots/")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -290,6 +322,23 @@ def build_parser() -> argparse.ArgumentParser:
                        help="pixel noise used by the outlier gate (default 2)")
     _output_arguments(noise)
     noise.set_defaults(func=cmd_analyze_noise)
+
+    cal = _command(
+        sub, "calibrate",
+        help="fit the sensor terms of the covariance on a sequence with ground truth",
+        description="Fit the sensor terms of the reported covariance (correlation_factor, frame_sigma_rot_deg, "
+        "frame_sigma_trans_m; see covo_gtsam.calibration) by maximum likelihood on the consecutive frame pairs "
+        "of a sequence with ground truth, for a sensor other than the Kinect v1 the defaults belong to. Runs "
+        "the odometry with the per-point model alone into OUT/per_point_run, writes OUT/calibration.json and "
+        "prints the configuration lines. Needs SciPy.",
+    )
+    _sequence_arguments(cal, "TUM RGB-D sequence folder with groundtruth.txt")
+    cal.add_argument("--max-frames", type=_int_in(11), metavar="N",
+                     help="only the first N frames (at least 11; default: all)")
+    cal.add_argument("--config", metavar="FILE",
+                     help="TOML or JSON settings for the run; its sensor terms are ignored (see README)")
+    _output_arguments(cal, plots=False)
+    cal.set_defaults(func=cmd_calibrate)
     return parser
 
 

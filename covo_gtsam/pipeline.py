@@ -145,3 +145,39 @@ def run_sequence(
 
         result.plot_files = plot_run(vo.steps, seq, metrics, out / "plots")
     return result
+
+
+def calibrate_sequence(
+    seq: TumSequence,
+    out_dir: str | os.PathLike,
+    config: OdometryConfig | None = None,
+    max_frames: int | None = None,
+    progress: bool = True,
+):
+    """Fit the sensor terms (:func:`covo_gtsam.calibration.fit_sensor_terms`) on a sequence with
+    ground truth.
+
+    Runs the odometry with the per-point model alone (``config`` with ``correlation_factor = 1``
+    and zero frame sigmas, frame to frame) into ``out_dir`` and fits the consecutive pairs
+    (one frame interval) that have ground truth. Returns ``(SensorTerms, RunResult)``.
+
+    Raises:
+        DatasetError: the sequence has no ground truth.
+        InputError: fewer than 10 usable pairs.
+    """
+    import dataclasses
+
+    from .calibration import fit_sensor_terms
+    from .evaluation import ground_truth_lookup, relative_ground_truth
+    from .metrics import relative_pose_tangent_errors
+
+    if seq.groundtruth is None:
+        raise DatasetError(f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
+    config = dataclasses.replace(config or OdometryConfig(), correlation_factor=1.0, frame_sigma_rot_deg=0.0,
+                                 frame_sigma_trans_m=0.0, keyframes=False)
+    result = run_sequence(seq, out_dir, config=config, max_frames=max_frames, plots=False, progress=progress)
+    lookup = ground_truth_lookup(seq)
+    consecutive = [s for s in result.steps if s.status == "tracked"
+                   and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1]
+    T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
+    return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs), result

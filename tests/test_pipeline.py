@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
@@ -132,28 +131,56 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
 @pytest.mark.slow
 def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_dir, tmp_path):
     """The defaults of correlation_factor and the frame sigmas are the maximum-likelihood fit on the
-    consecutive pairs ending in frames 1-119 of the shared fr1_rpy frames (per-point model alone,
-    everything else default), rounded; and on the pairs the fit has not seen (frames 120-239) the
+    consecutive pairs of frames 0-119 of the shared fr1_rpy frames (per-point model alone,
+    everything else default), rounded; and on pairs the fit has not seen (frames 119-239) the
     fitted model explains the errors better than the per-point model alone."""
     pytest.importorskip("scipy")
-    from covo_gtsam.calibration import fit_sensor_terms, log_likelihood
-    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.calibration import log_likelihood
     from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
     from covo_gtsam.metrics import relative_pose_tangent_errors
     from covo_gtsam.odometry import OdometryConfig
-    from covo_gtsam.pipeline import run_sequence
+    from covo_gtsam.pipeline import calibrate_sequence
 
     seq = TumSequence(fr1_rpy_dir)
     default = OdometryConfig()
-    points_only = dataclasses.replace(default, correlation_factor=1.0, frame_sigma_rot_deg=0.0,
-                                      frame_sigma_trans_m=0.0)
-    steps = run_sequence(seq, tmp_path, config=points_only, plots=False, progress=False).steps
-    T_est, T_true, P = relative_ground_truth(steps, ground_truth_lookup(seq))
-    err = relative_pose_tangent_errors(T_est, T_true)
-    assert len(err) == 239
-    fit = fit_sensor_terms(err[:119], P[:119])
+    fit, first_half = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False)
+    assert fit.pairs == 119
     assert fit.correlation_factor == pytest.approx(default.correlation_factor, rel=0.03)
     assert fit.frame_sigma_rot_deg == pytest.approx(default.frame_sigma_rot_deg, rel=0.03)
     assert fit.frame_sigma_trans_m == pytest.approx(default.frame_sigma_trans_m, rel=0.03)
-    held_out = [default.sensor_covariance(p) for p in P[119:]]
-    assert log_likelihood(err[119:], held_out) > log_likelihood(err[119:], P[119:]) + 10
+    _, whole = calibrate_sequence(seq, tmp_path / "all", progress=False)
+    T_est, T_true, P = relative_ground_truth(whole.steps, ground_truth_lookup(seq))
+    assert len(P) == 239
+    err, P = relative_pose_tangent_errors(T_est, T_true)[119:], P[119:]
+    assert log_likelihood(err, [default.sensor_covariance(p) for p in P]) > log_likelihood(err, P) + 10
+
+
+def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
+    """`covo calibrate` fits the sensor terms on the sample's 39 consecutive pairs, writes
+    calibration.json and prints configuration lines that a config file accepts."""
+    pytest.importorskip("scipy")
+    from covo_gtsam.odometry import OdometryConfig
+
+    out = tmp_path / "cal"
+    assert main(["calibrate", str(sample_dir), "--out", str(out), "--quiet"]) == 0
+    s = json.loads((out / "calibration.json").read_text())
+    assert s["pairs"] == 39
+    # the per-point model alone is far too confident on real data; the fit inflates it
+    assert min(s["per_point_model_anees"]) > 20 and s["correlation_factor"] > 1
+    assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 < s["frame_sigma_trans_m"] < 0.01
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.split(" = ")[0].isidentifier()]
+    assert len(lines) == 3
+    cfg = OdometryConfig.from_dict({k: float(v) for k, v in (ln.split(" = ") for ln in lines)})
+    assert cfg.correlation_factor == pytest.approx(s["correlation_factor"], rel=1e-2)
+    assert (out / "per_point_run" / "relative.txt").is_file()
+
+
+def test_calibrate_without_ground_truth_is_a_clear_error(sample_dir, tmp_path, capsys):
+    import shutil
+
+    seq = tmp_path / "rgbd_dataset_freiburg1_nogt"
+    shutil.copytree(sample_dir, seq)
+    (seq / "groundtruth.txt").unlink()
+    assert main(["calibrate", str(seq), "--out", str(tmp_path / "cal"), "--quiet", "--max-frames", "12"]) == 2
+    err = capsys.readouterr().err
+    assert "needs ground truth" in err and "Traceback" not in err
