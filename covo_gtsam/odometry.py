@@ -214,7 +214,9 @@ class OdometryStep:
     :meth:`OdometryConfig.gap_noise`. For tracked frames ``relative`` is T_ref,cur (points of this frame into the
     reference frame, the previous tracked one) with ``covariance`` in GTSAM's tangent
     ``[rx ry rz tx ty tz]`` (right perturbation); ``pose`` is T_world,cur with
-    ``pose_covariance`` composed to first order along the trajectory, and ``velocity`` the
+    ``pose_covariance`` composed to first order along the trajectory as if the pairs were
+    independent (consecutive pairs' translation errors are correlated on real data, so this
+    understates the translation drift; docs/consistency.md, finding 6), and ``velocity`` the
     camera's mean body twist ``[ω, v]`` (rad/s, m/s) over the pair, ``Log(T_ref,cur) / dt``.
     """
 
