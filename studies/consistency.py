@@ -177,7 +177,7 @@ def real_tables(data: Path, out_dir: Path, pairs: dict) -> list[str]:
             if m.get("rpe_30"):
                 cell += f"; RPE30 {m['rpe_30']['trans_rmse']:.4f} m"
             cells.append(cell)
-            if name.startswith("default") or name.startswith("thesis, 8 px, phi = 16"):
+            if name == DEFAULT_VARIANT or name.startswith("thesis, 8 px, phi = 16"):
                 plt = _plt()
                 T_est, T_true, covs = relative_ground_truth(res.steps, ground_truth_lookup(TumSequence(s)))
                 nr, nt = relative_pose_nees(T_est, T_true, covs)
@@ -186,7 +186,7 @@ def real_tables(data: Path, out_dir: Path, pairs: dict) -> list[str]:
                 nees_histogram(axes[1], nr, f"rotation NEES, {s.name}")
                 fig.suptitle(name)
                 fig.tight_layout()
-                tag = "default" if name.startswith("default") else "thesis16"
+                tag = "default" if name == DEFAULT_VARIANT else "thesis16"
                 fig.savefig(out_dir / f"real_{tag}_{s.name}.png", dpi=100)
                 plt.close(fig)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
