@@ -15,7 +15,6 @@ from .geometry import invert_pose, rotation_angle, skew
 
 __all__ = [
     "anees",
-    "relative_pose_tangent_errors",
     "ate",
     "ate_errors",
     "ate_statistics",
@@ -25,6 +24,7 @@ __all__ = [
     "nees",
     "relative_pose_errors",
     "relative_pose_nees",
+    "relative_pose_tangent_errors",
     "rpe",
     "rpe_statistics",
     "se3_log",
