@@ -49,6 +49,10 @@ class KinectAxialNoise:
     ``sigma_Z = a + b (Z - z0)^2`` metres, plus ``c / sqrt(Z) * theta^2 / (pi/2 - theta)^2``
     for ``theta > theta_max`` (60 deg). Below 10 deg the 10-60 deg fit is used unchanged.
 
+    ``scale`` multiplies the whole ``sigma_Z`` (1: the published model). On the shared TUM
+    frames the depth errors that matter for the pose are larger than the model says, and partly
+    systematic, so :class:`~covo_gtsam.odometry.OdometryConfig` scales it (``depth_sigma_scale``).
+
     The model is defined for measured depths ``Z > 0`` only: zero, negative or non-finite depths
     are no measurement (a depth camera reports 0; the front end drops such keypoints) and raise
     :class:`~covo_gtsam.errors.InputError`.
@@ -59,6 +63,7 @@ class KinectAxialNoise:
     z0: float = 0.4
     c: float = 0.0001
     theta_max: float = np.deg2rad(60.0)
+    scale: float = 1.0
 
     def sigma(self, z: np.ndarray, theta: np.ndarray | float = 0.0) -> np.ndarray:
         z = np.asarray(z, dtype=float)
@@ -71,10 +76,10 @@ class KinectAxialNoise:
         s = self.a + self.b * (z - self.z0) ** 2
         steep = theta > self.theta_max
         if not np.any(steep):
-            return np.asarray(s)
+            return self.scale * np.asarray(s)
         th = np.where(steep, theta, 0.0)  # the extra term only where it applies
         extra = self.c / np.sqrt(z) * th**2 / (_HALF_PI - th) ** 2
-        return np.where(steep, s + extra, s)
+        return self.scale * np.where(steep, s + extra, s)
 
 
 @dataclass(frozen=True)

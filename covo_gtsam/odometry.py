@@ -39,6 +39,7 @@ MOTION_MODELS = ("constant_velocity", "none")
 #: Real-valued settings of :class:`OdometryConfig`: kind and range (None: unbounded on that side).
 _REAL_LIMITS = {
     "pixel_sigma": ("positive", MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA),
+    "depth_sigma_scale": ("positive", 1e-3, 1e3),
     "scale": ("positive", None, MAX_SCALE),
     "depth_scale": ("positive", None, 1e9),
     "keyframe_ratio": ("positive", None, 1.0),
@@ -113,6 +114,7 @@ class OdometryConfig:
 
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     pixel_sigma: float = 2.0
+    depth_sigma_scale: float = 4.5
     pixel_sigma_by_level: bool = False
     use_surface_angle: bool = True
     weighting: str = "consistent"
@@ -125,9 +127,9 @@ class OdometryConfig:
     variance_factor: bool = False
     max_rotation_deg: float = 30.0
     max_translation_m: float = 0.5
-    correlation_factor: float = 10.8
+    correlation_factor: float = 2.3
     frame_sigma_rot_deg: float = 0.22
-    frame_sigma_trans_m: float = 0.0018
+    frame_sigma_trans_m: float = 0.00078
     frame_interval_s: float = 1.0 / 30.0
     restart_after: int = 5
     rolling_shutter_s: float = 0.025
@@ -174,7 +176,8 @@ class OdometryConfig:
         return max(1, int(round(dt / self.frame_interval_s))) if np.isfinite(dt) else 1
 
     def noise_model(self) -> PointNoiseModel:
-        return PointNoiseModel(pixel=PixelNoise(self.pixel_sigma, self.pixel_sigma), depth=KinectAxialNoise())
+        return PointNoiseModel(pixel=PixelNoise(self.pixel_sigma, self.pixel_sigma),
+                               depth=KinectAxialNoise(scale=self.depth_sigma_scale))
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "OdometryConfig":

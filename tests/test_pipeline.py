@@ -165,8 +165,8 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     assert main(["calibrate", str(sample_dir), "--out", str(out), "--quiet"]) == 0
     s = json.loads((out / "calibration.json").read_text())
     assert s["pairs"] == 39
-    # the per-point model alone is far too confident on real data; the fit inflates it
-    assert min(s["per_point_model_anees"]) > 20 and s["correlation_factor"] > 1
+    # the per-point model alone is too confident on real data (ANEES well above 3); the fit inflates it
+    assert min(s["per_point_model_anees"]) > 6 and s["correlation_factor"] > 1
     assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 < s["frame_sigma_trans_m"] < 0.01
     lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.split(" = ")[0].isidentifier()]
     assert len(lines) == 3
@@ -184,3 +184,26 @@ def test_calibrate_without_ground_truth_is_a_clear_error(sample_dir, tmp_path, c
     assert main(["calibrate", str(seq), "--out", str(tmp_path / "cal"), "--quiet", "--max-frames", "12"]) == 2
     err = capsys.readouterr().err
     assert "needs ground truth" in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_default_depth_sigma_scale_minimises_rpe1_on_the_first_half_of_fr1_rpy(fr1_rpy_dir, tmp_path):
+    """depth_sigma_scale is the value with the smallest translational RPE over 1 frame on frames
+    0-119 of the shared fr1_rpy frames; the published model (1) and the neighbours of the default
+    on the study's grid do worse there."""
+    import dataclasses
+
+    from covo_gtsam.odometry import OdometryConfig
+    from covo_gtsam.pipeline import run_sequence
+
+    seq = TumSequence(fr1_rpy_dir)
+    default = OdometryConfig()
+
+    def rpe1(scale):
+        cfg = dataclasses.replace(default, depth_sigma_scale=scale)
+        m = run_sequence(seq, tmp_path / str(scale), config=cfg, max_frames=120, plots=False, progress=False).metrics
+        return m["rpe_1"]["trans_rmse"]
+
+    best = rpe1(default.depth_sigma_scale)
+    for scale in (1.0, default.depth_sigma_scale - 1.0, default.depth_sigma_scale + 1.0):
+        assert best < rpe1(scale)
