@@ -57,7 +57,10 @@ _REAL_LIMITS = {
 class OdometryConfig:
     """Settings of :class:`VisualOdometry` (front end, noise model, estimator).
 
-    ``pixel_sigma`` (pixels) is the conic-ray noise of the keypoints. The per-point model treats
+    ``pixel_sigma`` (pixels) is the conic-ray noise of the keypoints; ``depth_sigma_scale``
+    multiplies the Kinect depth model's ``sigma_Z`` (4.5: the value with the most accurate
+    frame-to-frame poses on the first half of the shared fr1_rpy frames; 1: the published model;
+    see docs/consistency.md, finding 3). The per-point model treats
     the points' errors as independent; a real Kinect v1 also has errors shared by the points of a
     frame pair (depth-image distortion correlated over the image, colour/depth synchronisation),
     which the post-fit residuals cannot show. The reported covariance of a pair is therefore
@@ -218,8 +221,8 @@ class OdometryStep:
     reference frame, the previous tracked one) with ``covariance`` in GTSAM's tangent
     ``[rx ry rz tx ty tz]`` (right perturbation); ``pose`` is T_world,cur with
     ``pose_covariance`` composed to first order along the trajectory as if the pairs were
-    independent (consecutive pairs' translation errors are correlated on real data, so this
-    understates the translation drift; docs/consistency.md, finding 6), and ``velocity`` the
+    independent (over chains of some 30 pairs this understates the translation drift on real
+    data; docs/consistency.md, finding 7), and ``velocity`` the
     camera's mean body twist ``[ω, v]`` (rad/s, m/s) over the pair, ``Log(T_ref,cur) / dt``.
     """
 

@@ -261,3 +261,18 @@ def test_no_frame_associated(tmp_path):
     (seq / "depth.txt").write_text("# nothing close\n5000.0 depth/x.png\n")
     with pytest.raises(DatasetError, match="associated"):
         TumSequence(seq)
+
+
+def test_frames_restricts_a_sequence(sample_dir):
+    from covo_gtsam.errors import ConfigError
+
+    seq = TumSequence(sample_dir)
+    part = seq.frames(10, 20)
+    assert len(part) == 10 and len(seq) == 40
+    assert part.timestamps[0] == seq.timestamps[10] and part.rgb_paths[-1] == seq.rgb_paths[19]
+    np.testing.assert_array_equal(part.groundtruth, seq.groundtruth[10:20])
+    assert part.depth_paths == seq.depth_paths[10:20] and list(part.gt_valid) == list(seq.gt_valid[10:20])
+    assert len(seq.frames(35)) == 5
+    for bad in ((5, 5), (-1, 3), (0, 41), (2.0, 5)):
+        with pytest.raises(ConfigError):
+            seq.frames(*bad)

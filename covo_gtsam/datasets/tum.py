@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DatasetError
+from ..errors import ConfigError, DatasetError
 from ..geometry import make_pose, matrix_to_quat, quat_to_matrix
 from ..io import data_lines, load_tum_trajectory
 
@@ -232,6 +232,21 @@ class TumSequence:
 
     def __iter__(self):
         return (self[i] for i in range(len(self)))
+
+    def frames(self, start: int, stop: int | None = None) -> "TumSequence":
+        """The same sequence restricted to frames ``start`` to ``stop - 1`` (a copy; ``stop`` None:
+        to the end). Raises :class:`ConfigError` unless ``0 <= start < stop <= len(self)``."""
+        import copy
+
+        stop = len(self) if stop is None else stop
+        if not (isinstance(start, int) and isinstance(stop, int) and 0 <= start < stop <= len(self)):
+            raise ConfigError(f"frames need 0 <= start < stop <= {len(self)}, got {start!r}, {stop!r}")
+        part = copy.copy(self)
+        part.timestamps = self.timestamps[start:stop]
+        part.rgb_paths, part.depth_paths = self.rgb_paths[start:stop], self.depth_paths[start:stop]
+        part.gt_valid = self.gt_valid[start:stop]
+        part.groundtruth = None if self.groundtruth is None else self.groundtruth[start:stop]
+        return part
 
     def __repr__(self) -> str:
         gt = "no ground truth" if self.groundtruth is None else f"{int(self.gt_valid.sum())} with ground truth"
