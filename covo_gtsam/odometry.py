@@ -162,21 +162,19 @@ class OdometryConfig:
         """6x6 frame term (tangent [omega, v]) of a pair whose frames are ``dt`` seconds apart,
         ``k = frame_intervals(dt)`` (1 if None): per axis ``frame_sigma_rot_deg^2 k`` and
         ``frame_sigma_trans_m^2 k^2`` (:func:`covo_gtsam.calibration.frame_covariance`)."""
-        k = 1 if dt is None else self.frame_intervals(dt)
-        return frame_covariance(np.deg2rad(self.frame_sigma_rot_deg), self.frame_sigma_trans_m, k)
+        return frame_covariance(np.deg2rad(self.frame_sigma_rot_deg), self.frame_sigma_trans_m, self.frame_intervals(dt))
 
     def sensor_covariance(self, point_covariance: np.ndarray, dt: float | None = None) -> np.ndarray:
         """Reported 6x6 covariance of a pair whose frames are ``dt`` seconds apart, from the
         estimator's per-point covariance (tangent [omega, v]):
         ``correlation_factor * point_covariance + frame_noise(dt)``."""
-        k = 1 if dt is None else self.frame_intervals(dt)
         return sensor_covariance(point_covariance, self.correlation_factor, np.deg2rad(self.frame_sigma_rot_deg),
-                                 self.frame_sigma_trans_m, k)
+                                 self.frame_sigma_trans_m, self.frame_intervals(dt))
 
-    def frame_intervals(self, dt: float) -> int:
+    def frame_intervals(self, dt: float | None) -> int:
         """Frame intervals between two frames ``dt`` seconds apart: ``round(dt / frame_interval_s)``,
-        at least 1 (timestamp jitter of consecutive frames does not change it)."""
-        return max(1, int(round(dt / self.frame_interval_s))) if np.isfinite(dt) else 1
+        at least 1 (timestamp jitter of consecutive frames does not change it); 1 if ``dt`` is None."""
+        return max(1, int(round(dt / self.frame_interval_s))) if dt is not None and np.isfinite(dt) else 1
 
     def noise_model(self) -> PointNoiseModel:
         return PointNoiseModel(pixel=PixelNoise(self.pixel_sigma, self.pixel_sigma),
