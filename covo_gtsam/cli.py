@@ -88,23 +88,15 @@ def load_config_file(path: str):
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .camera import Camera
-    from .datasets.tum import TumSequence
-    from .odometry import OdometryConfig
     from .pipeline import check_output_dir, run_sequence
 
-    config = load_config_file(args.config) if args.config else OdometryConfig()
+    config = _load_config(args)
     if args.weighting:
         config = _replace(config, weighting=args.weighting)
     if args.scale is not None:
         config = _replace(config, scale=args.scale)
-    camera = Camera.preset(args.camera) if args.camera else None
-    seq = TumSequence(args.sequence, camera=camera)
-    if args.config:  # the front end must fit the images; name the file when it does not
-        try:
-            config.frontend.check_image_size(seq.camera.width, seq.camera.height)
-        except ConfigError as exc:
-            raise ConfigError(f"{args.config}: {exc}") from exc
+    seq = _sequence(args)
+    _check_config_fits(args, config, seq)
     check_output_dir(Path(args.out))
     result = run_sequence(
         seq, args.out, config=config, max_frames=args.max_frames, plots=not args.no_plots, progress=not args.quiet
@@ -120,6 +112,29 @@ def cmd_run(args: argparse.Namespace) -> int:
         _plots_missing()
     print(f"results in {result.out_dir}")
     return 0
+
+
+def _load_config(args: argparse.Namespace):
+    """The odometry configuration of ``--config``, or the default one."""
+    from .odometry import OdometryConfig
+
+    return load_config_file(args.config) if args.config else OdometryConfig()
+
+
+def _sequence(args: argparse.Namespace):
+    """The sequence folder of ``SEQ_DIR`` with the ``--camera`` preset, if given."""
+    from .datasets.tum import TumSequence
+
+    return TumSequence(args.sequence, camera=args.camera)
+
+
+def _check_config_fits(args: argparse.Namespace, config, seq) -> None:
+    """The front end of a ``--config`` file must fit the images; the error names the file."""
+    if args.config:
+        try:
+            config.frontend.check_image_size(seq.camera.width, seq.camera.height)
+        except ConfigError as exc:
+            raise ConfigError(f"{args.config}: {exc}") from exc
 
 
 def _replace(config, **kw):
@@ -160,12 +175,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_analyze_noise(args: argparse.Namespace) -> int:
     from .analysis import analyze_sequence, plot_noise
-    from .camera import Camera
-    from .datasets.tum import TumSequence
     from .io import write_json
     from .pipeline import check_output_dir
 
-    seq = TumSequence(args.sequence, camera=Camera.preset(args.camera) if args.camera else None)
+    seq = _sequence(args)
     out = check_output_dir(Path(args.out))
     summary = analyze_sequence(seq, pixel_sigma=args.pixel_sigma, max_frames=args.max_frames, progress=not args.quiet)
     if not args.no_plots:
@@ -185,16 +198,14 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import importlib.util
 
-    from .camera import Camera
-    from .datasets.tum import TumSequence
     from .io import write_json
-    from .odometry import OdometryConfig
     from .pipeline import calibrate_sequence, check_output_dir
 
     if importlib.util.find_spec("scipy") is None:
         raise CovoError('calibrate needs SciPy: pip install "covo-gtsam[calibrate]" (or pip install scipy)')
-    config = load_config_file(args.config) if args.config else OdometryConfig()
-    seq = TumSequence(args.sequence, camera=Camera.preset(args.camera) if args.camera else None)
+    config = _load_config(args)
+    seq = _sequence(args)
+    _check_config_fits(args, config, seq)
     out = check_output_dir(Path(args.out))
     fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
                                      progress=not args.quiet)
