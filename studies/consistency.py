@@ -144,9 +144,9 @@ def pair_errors(seq: TumSequence, steps, cfg: OdometryConfig) -> dict:
     from covo_gtsam.metrics import relative_pose_tangent_errors
 
     lookup = ground_truth_lookup(seq)
-    T_est, T_true, covs = relative_ground_truth(steps, lookup)
-    index = {t: i for i, t in enumerate(seq.timestamps)}
     kept = [st for st in steps if st.status == "tracked" and st.ref_timestamp in lookup and st.timestamp in lookup]
+    T_est, T_true, covs = relative_ground_truth(kept, lookup)
+    index = {t: i for i, t in enumerate(seq.timestamps)}
     return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "T_est": T_est, "T_true": T_true,
             "k": np.array([cfg.frame_intervals(st.timestamp - st.ref_timestamp) for st in kept]),
             "end": np.array([index[st.timestamp] for st in kept])}
@@ -241,12 +241,12 @@ def calibration_tables(data: Path, pairs: dict) -> list[str]:
               f"{1e3 * d.frame_sigma_trans_m:g} mm | |", ""]
 
     def model(fit, p, law="k^2"):
-        C = sensor_covariance(p["cov"], fit.correlation_factor, np.deg2rad(fit.frame_sigma_rot_deg),
-                              fit.frame_sigma_trans_m, p["k"])
-        if law == "k":  # translation variance growing like a random walk instead
-            C = C - frame_covariance(0.0, fit.frame_sigma_trans_m, p["k"]) + \
-                frame_covariance(0.0, fit.frame_sigma_trans_m, np.sqrt(p["k"]))
-        return C
+        s_r = np.deg2rad(fit.frame_sigma_rot_deg)
+        if law == "k^2":  # the shipped law
+            return sensor_covariance(p["cov"], fit.correlation_factor, s_r, fit.frame_sigma_trans_m, p["k"])
+        # translation variance growing like a random walk (k s_t^2 = (sqrt(k))^2 s_t^2) instead
+        return (sensor_covariance(p["cov"], fit.correlation_factor, s_r, 0.0, p["k"])
+                + frame_covariance(0.0, fit.frame_sigma_trans_m, np.sqrt(p["k"])))
 
     def subsets(run):
         out = []
@@ -266,8 +266,7 @@ def calibration_tables(data: Path, pairs: dict) -> list[str]:
     lines += ["Consecutive pairs: ANEES translation / rotation; share above 9.35; mean log-likelihood per pair "
               "(higher is better; it rewards covariances that follow the errors from pair to pair).", "",
               "| model | " + " | ".join(n for n, _, _ in ff_sets) + " |", "|---" * (len(ff_sets) + 1) + "|"]
-    none = sensor_covariance
-    rows = {"per-point model only": lambda p: none(p["cov"], 1.0, 0.0, 0.0, p["k"])}
+    rows = {"per-point model only": lambda p: p["cov"]}
     rows.update({name: (lambda p, f=f: model(f, p)) for name, f in fits.items()})
     for name, build in rows.items():
         lines.append(f"| {name} | " + " | ".join(_cells(p["err"][m], build(p)[m]) for _, p, m in ff_sets) + " |")
