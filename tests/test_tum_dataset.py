@@ -231,6 +231,7 @@ def test_listed_file_missing_is_kept_and_reported(tmp_path):
     victim.unlink()
     s = TumSequence(seq)
     assert str(victim) in s.rgb_paths and s.missing_files == [str(victim)]
+    assert s.frames(2, 4).missing_files == [str(victim)] and s.frames(3).missing_files == []
     for f in (seq / "depth").iterdir():  # colour images left, but no frame is usable
         f.unlink()
     with pytest.raises(DatasetError, match="no frame has both") as info:

@@ -244,6 +244,8 @@ class TumSequence:
         part = copy.copy(self)
         part.timestamps = self.timestamps[start:stop]
         part.rgb_paths, part.depth_paths = self.rgb_paths[start:stop], self.depth_paths[start:stop]
+        listed = set(part.rgb_paths) | set(part.depth_paths)
+        part.missing_files = [f for f in self.missing_files if f in listed]
         part.gt_valid = self.gt_valid[start:stop]
         part.groundtruth = None if self.groundtruth is None else self.groundtruth[start:stop]
         return part
