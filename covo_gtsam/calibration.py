@@ -13,6 +13,12 @@ frame to frame); ``s_t`` (m) is a translation error per interval that persists o
 of a pair (it comes with the scene's depth errors), so its standard deviation grows with ``k``.
 The growth laws were chosen on keyframe pairs spanning 1-15 intervals (docs/consistency.md).
 
+A timing term adds, for each frame ``f`` of the pair, ``tau^2 xi_f xi_f^T``: ``xi_f`` is the
+camera's body twist ``[omega, v]`` at that frame (rad/s, m/s) and ``tau`` (s) the standard deviation
+of the error of a frame's timestamp as a time of capture (stamp jitter, the colour-depth offset,
+the readout). A frame taken ``d`` seconds away from its stamp has its pose off by ``Exp(d xi_f)``,
+so this error grows with the speed of the camera, and vanishes for a camera at rest.
+
 :func:`fit_sensor_terms` estimates ``kappa, s_r, s_t`` from the errors of consecutive pairs
 against ground truth, by maximising the Gaussian likelihood; it needs SciPy
 (``pip install "covo-gtsam[calibrate]"``).
@@ -26,20 +32,23 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["SensorTerms", "frame_covariance", "sensor_covariance", "log_likelihood", "fit_sensor_terms"]
+__all__ = ["SensorTerms", "frame_covariance", "timing_covariance", "sensor_covariance", "log_likelihood",
+           "fit_sensor_terms"]
 
 
 @dataclass(frozen=True)
 class SensorTerms:
     """Fitted sensor terms: ``correlation_factor`` (kappa), per-interval standard deviations
     ``frame_sigma_rot_deg`` (degrees per axis) and ``frame_sigma_trans_m`` (metres per axis), the
-    mean log-likelihood per pair at the fit and the number of pairs it used."""
+    mean log-likelihood per pair at the fit, the number of pairs it used, and the timing term's
+    ``timing_sigma_s`` (seconds; 0 when not fitted)."""
 
     correlation_factor: float
     frame_sigma_rot_deg: float
     frame_sigma_trans_m: float
     log_likelihood: float
     pairs: int
+    timing_sigma_s: float = 0.0
 
 
 def frame_covariance(sigma_rot_rad: float, sigma_trans_m: float, intervals: np.ndarray | int = 1) -> np.ndarray:
@@ -51,14 +60,26 @@ def frame_covariance(sigma_rot_rad: float, sigma_trans_m: float, intervals: np.n
     return diag[..., :, None] * np.eye(6)
 
 
+def timing_covariance(twists: np.ndarray, timing_sigma_s: float) -> np.ndarray:
+    """Timing term(s) (..., 6, 6): ``tau^2 sum_f xi_f xi_f^T`` over the body twists (..., F, 6)
+    ``[omega, v]`` (rad/s, m/s) of a pair's F frames; ``tau = timing_sigma_s`` (s)."""
+    xi = np.asarray(twists, dtype=float)
+    return timing_sigma_s**2 * np.einsum("...fi,...fj->...ij", xi, xi)
+
+
 def sensor_covariance(point_cov: np.ndarray, correlation_factor: float, sigma_rot_rad: float,
-                      sigma_trans_m: float, intervals: np.ndarray | int = 1) -> np.ndarray:
-    """Reported covariance(s) ``kappa * C_points + frame_covariance(s_r, s_t, k)``.
+                      sigma_trans_m: float, intervals: np.ndarray | int = 1, twists: np.ndarray | None = None,
+                      timing_sigma_s: float = 0.0) -> np.ndarray:
+    """Reported covariance(s) ``kappa * C_points + frame_covariance(s_r, s_t, k)``, plus
+    ``timing_covariance(twists, timing_sigma_s)`` when ``twists`` (..., F, 6) are given.
 
     ``point_cov`` (..., 6, 6) and ``intervals`` (...,) broadcast; tangent ``[omega, v]``.
     """
-    return correlation_factor * np.asarray(point_cov, dtype=float) + frame_covariance(
+    C = correlation_factor * np.asarray(point_cov, dtype=float) + frame_covariance(
         sigma_rot_rad, sigma_trans_m, intervals)
+    if twists is not None and timing_sigma_s > 0:
+        C = C + timing_covariance(twists, timing_sigma_s)
+    return C
 
 
 def log_likelihood(errors: np.ndarray, covs: np.ndarray) -> float:
@@ -75,9 +96,12 @@ def log_likelihood(errors: np.ndarray, covs: np.ndarray) -> float:
     return float(np.mean(-0.5 * q - 0.5 * logdet))
 
 
-def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation_factor: bool = True) -> SensorTerms:
+def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation_factor: bool = True,
+                     twists: np.ndarray | None = None) -> SensorTerms:
     """Maximum-likelihood ``kappa, s_r, s_t`` from consecutive pairs (one interval each); with
-    ``fit_correlation_factor=False`` kappa stays 1 and only the frame term is fitted.
+    ``fit_correlation_factor=False`` kappa stays 1 and only the frame term is fitted. With
+    ``twists`` (N, F, 6), the body twists at each pair's frames, the timing term's ``tau`` is
+    fitted too (:func:`timing_covariance`).
 
     ``errors`` (N, 6): ``Log(T_est^-1 T_true)`` of each pair
     (:func:`covo_gtsam.metrics.relative_pose_tangent_errors`; right perturbation, ``[omega, v]``);
@@ -92,16 +116,24 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
         raise InputError(f"need at least 10 pairs to fit the sensor terms, got {len(errors)}")
     if not (np.all(np.isfinite(errors)) and np.all(np.isfinite(point_covs))):
         raise InputError("errors and covariances must be finite")
+    if twists is not None:
+        twists = np.asarray(twists, dtype=float)
+        if twists.ndim != 3 or twists.shape[0] != len(errors) or twists.shape[2] != 6 or not np.all(np.isfinite(twists)):
+            raise InputError(f"twists must be finite (N, F, 6) for N = {len(errors)} pairs, got {twists.shape}")
     try:
         from scipy.optimize import minimize
     except ImportError as exc:  # pragma: no cover - depends on the installation
         raise ImportError('fitting the sensor terms needs SciPy: pip install "covo-gtsam[calibrate]"') from exc
 
-    def params(x: np.ndarray) -> tuple[float, float, float]:
-        return tuple(np.exp(x)) if fit_correlation_factor else (1.0, *np.exp(x))
+    timing = twists is not None
+
+    def params(x: np.ndarray) -> tuple[float, float, float, float]:
+        p = tuple(np.exp(x)) if fit_correlation_factor else (1.0, *np.exp(x))
+        return p if timing else (*p, 0.0)
 
     def cost(x: np.ndarray) -> float:
-        return -log_likelihood(errors, sensor_covariance(point_covs, *params(x)))
+        kappa, s_r, s_t, tau = params(x)
+        return -log_likelihood(errors, sensor_covariance(point_covs, kappa, s_r, s_t, 1, twists, tau))
 
     # start from moment matching: kappa 1, frame variances = mean squared error per axis, then
     # from larger kappa and smaller frame terms (the likelihood can have more than one maximum)
@@ -110,8 +142,10 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
     for shift in (0.0, 1.0, 2.0, 3.0) if fit_correlation_factor else (0.0,):
         x0 = start + np.array([shift, -0.3 * shift, -0.3 * shift])
         x0 = x0 if fit_correlation_factor else x0[1:]
+        if timing:  # from 2 ms, a typical stamp jitter
+            x0 = np.append(x0, np.log(0.002))
         res = minimize(cost, x0, method="Nelder-Mead", options={"maxiter": 4000, "xatol": 1e-6, "fatol": 1e-10})
         if best is None or res.fun < best.fun:
             best = res
-    kappa, s_r, s_t = params(best.x)
-    return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors))
+    kappa, s_r, s_t, tau = params(best.x)
+    return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors), float(tau))

@@ -86,6 +86,9 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
         "elapsed_s": float(elapsed_s),
         "frames_per_second": float(len(steps) / elapsed_s) if elapsed_s > 0 else None,
         "mean_pairs": float(np.mean([s.num_pairs for s in steps if s.status == "tracked"] or [0])),
+        "flagged_pairs": sum(1 for s in steps if s.status == "tracked" and s.flagged),
+        "flagged": [{"timestamp": s.timestamp, "ref_timestamp": s.ref_timestamp, "quality": s.quality}
+                    for s in steps if s.status == "tracked" and s.flagged],
     }
     gt = ground_truth_lookup(seq)
     if not gt:

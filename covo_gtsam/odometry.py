@@ -23,6 +23,7 @@ from .covariance import compose_covariance
 from .errors import ConfigError, CovoError, EstimationError, InputError
 from .estimator import ROBUST_KERNELS, RelativePoseResult, estimate_relative_pose
 from .factors import WEIGHTINGS
+from .integrity import IntegrityScale, depth_free_check
 from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 from .rolling_shutter import compensate_pair
@@ -49,6 +50,8 @@ _REAL_LIMITS = {
     "frame_sigma_rot_deg": ("non-negative", None, 180.0),
     "frame_sigma_trans_m": ("non-negative", None, 1e3),
     "frame_interval_s": ("positive", 1e-4, 1e3),
+    "timing_sigma_s": ("non-negative", None, 1.0),
+    "integrity_threshold": ("positive", None, None),
     "rolling_shutter_s": ("non-negative", None, 1.0),
 }
 
@@ -130,10 +133,12 @@ class OdometryConfig:
     variance_factor: bool = False
     max_rotation_deg: float = 30.0
     max_translation_m: float = 0.5
-    correlation_factor: float = 2.3
-    frame_sigma_rot_deg: float = 0.22
-    frame_sigma_trans_m: float = 0.00078
+    correlation_factor: float = 2.5
+    frame_sigma_rot_deg: float = 0.14
+    frame_sigma_trans_m: float = 0.00057
     frame_interval_s: float = 1.0 / 30.0
+    timing_sigma_s: float = 0.0029
+    integrity_threshold: float = 100.0
     restart_after: int = 5
     rolling_shutter_s: float = 0.025
 
@@ -164,12 +169,15 @@ class OdometryConfig:
         ``frame_sigma_trans_m^2 k^2`` (:func:`covo_gtsam.calibration.frame_covariance`)."""
         return frame_covariance(np.deg2rad(self.frame_sigma_rot_deg), self.frame_sigma_trans_m, self.frame_intervals(dt))
 
-    def sensor_covariance(self, point_covariance: np.ndarray, dt: float | None = None) -> np.ndarray:
+    def sensor_covariance(self, point_covariance: np.ndarray, dt: float | None = None,
+                          twists: np.ndarray | None = None) -> np.ndarray:
         """Reported 6x6 covariance of a pair whose frames are ``dt`` seconds apart, from the
         estimator's per-point covariance (tangent [omega, v]):
-        ``correlation_factor * point_covariance + frame_noise(dt)``."""
+        ``correlation_factor * point_covariance + frame_noise(dt)``, plus the timing term
+        ``timing_sigma_s^2 sum_f xi_f xi_f^T`` over the camera's body twists ``twists`` (F, 6)
+        (rad/s, m/s) at the pair's frames when given (:func:`covo_gtsam.calibration.timing_covariance`)."""
         return sensor_covariance(point_covariance, self.correlation_factor, np.deg2rad(self.frame_sigma_rot_deg),
-                                 self.frame_sigma_trans_m, self.frame_intervals(dt))
+                                 self.frame_sigma_trans_m, self.frame_intervals(dt), twists, self.timing_sigma_s)
 
     def frame_intervals(self, dt: float | None) -> int:
         """Frame intervals between two frames ``dt`` seconds apart: ``round(dt / frame_interval_s)``,
@@ -222,6 +230,10 @@ class OdometryStep:
     independent (over chains of some 30 pairs this understates the translation drift on real
     data; docs/consistency.md, finding 7), and ``velocity`` the
     camera's mean body twist ``[ω, v]`` (rad/s, m/s) over the pair, ``Log(T_ref,cur) / dt``.
+    ``quality`` is the pair's integrity statistic (:mod:`covo_gtsam.integrity`; about chi2(6)
+    for a typical pair of the run, None when it could not be formed) and ``flagged`` tells that it
+    exceeded ``integrity_threshold``: the covariance then also covers the disagreement of the
+    pair's two depth-free estimates. A back end can gate on either.
     """
 
     timestamp: float
@@ -235,6 +247,8 @@ class OdometryStep:
     num_matches: int = 0
     num_pairs: int = 0
     velocity: np.ndarray | None = None
+    quality: float | None = None
+    flagged: bool = False
     result: RelativePoseResult | None = field(default=None, repr=False)
 
     @property
@@ -266,6 +280,7 @@ class VisualOdometry:
         self._keyframe_min_pairs = 0
         self._velocity: tuple[gtsam.Pose3, float] | None = None  # (T_prev,last, dt) of the last two tracked frames
         self._lost_run = 0  # consecutive lost frames since the last tracked one
+        self._integrity = IntegrityScale()
         self.steps: list[OdometryStep] = []
 
     # -- front end -------------------------------------------------------------------------
@@ -373,7 +388,8 @@ class VisualOdometry:
             return step
         dt = timestamp - ref_step.timestamp
         try:
-            res = self._solve(pairs.X_ref, pairs.X_cur, pairs, None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
+            X_ref, X_cur = pairs.X_ref, pairs.X_cur
+            res = self._solve(X_ref, X_cur, pairs, None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
             if self.config.rolling_shutter_s > 0 and dt > 0:
                 X_ref, X_cur = compensate_pair(pairs.X_ref, pairs.uv_ref[:, 1], pairs.X_cur, pairs.uv_cur[:, 1],
                                                res.pose, dt, self.camera.height, self.config.rolling_shutter_s,
@@ -391,7 +407,20 @@ class VisualOdometry:
         step.status = "tracked"
         step.relative = res.pose
         step.velocity = gtsam.Pose3.Logmap(res.pose) / dt if dt > 0 else None
-        step.covariance = self.config.sensor_covariance(res.covariance, dt)
+        twists = None
+        if step.velocity is not None:
+            twists = np.stack([step.velocity if ref_step.velocity is None else ref_step.velocity, step.velocity])
+        step.covariance = self.config.sensor_covariance(res.covariance, dt, twists)
+        try:
+            check = depth_free_check(res.pose.matrix(), X_ref, X_cur, pairs.Q_ref, pairs.Q_cur,
+                                     self.camera.fx, self.camera.fy, self.config.pixel_sigma)
+        except np.linalg.LinAlgError:
+            check = None  # too few well-spread points for a depth-free estimate: no quality value
+        if check is not None and np.all(np.isfinite(check.inflation())):
+            step.quality = self._integrity.normalise(check.statistic)
+            step.flagged = not step.quality <= self.config.integrity_threshold
+            if step.flagged:  # honest: the covariance covers the disagreement of the two depth-free estimates
+                step.covariance = check.inflate(step.covariance, step.quality)
         step.result = res
         step.pose = ref_step.pose.compose(res.pose)
         step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, res.pose, step.covariance)

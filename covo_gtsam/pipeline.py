@@ -174,10 +174,26 @@ def calibrate_sequence(
     if seq.groundtruth is None:
         raise DatasetError(f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
     config = dataclasses.replace(config or OdometryConfig(), correlation_factor=1.0, frame_sigma_rot_deg=0.0,
-                                 frame_sigma_trans_m=0.0, keyframes=False)
+                                 frame_sigma_trans_m=0.0, timing_sigma_s=0.0, keyframes=False)
     result = run_sequence(seq, out_dir, config=config, max_frames=max_frames, plots=False, progress=progress)
     lookup = ground_truth_lookup(seq)
     consecutive = [s for s in result.steps if s.status == "tracked"
                    and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1]
+    consecutive = [s for s in consecutive if s.velocity is not None
+                   and lookup.get(s.ref_timestamp) is not None and lookup.get(s.timestamp) is not None]
     T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
-    return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs), result
+    return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs,
+                            twists=pair_twists(consecutive, result.steps)), result
+
+
+def pair_twists(pairs, steps) -> np.ndarray:
+    """Body twists (N, 2, 6) at the reference and current frame of each tracked pair in ``pairs``
+    (rad/s, m/s; the reference frame's own pair twist, or the pair's where it has none), as
+    :meth:`VisualOdometry.register_frame` uses them for the timing term."""
+    by_stamp = {s.timestamp: s for s in steps if s.tracked}
+    out = []
+    for s in pairs:
+        ref = by_stamp.get(s.ref_timestamp)
+        v_ref = s.velocity if ref is None or ref.velocity is None else ref.velocity
+        out.append(np.stack([v_ref, s.velocity]))
+    return np.array(out).reshape(-1, 2, 6)

@@ -82,3 +82,46 @@ def test_fit_rejects_bad_input():
     e[0, 0] = np.nan
     with pytest.raises(InputError, match="finite"):
         fit_sensor_terms(e, _random_spd(rng, 12))
+
+
+def test_timing_term_matches_monte_carlo_of_stamp_errors():
+    """Two frames captured tau_ref and tau_cur seconds after their stamps (tau ~ N(0, s^2)) of a
+    camera moving with constant body twist xi: the relative pose between the stamps differs from
+    the captured one by the right perturbation Log(T_stamps^-1 T_captured); its covariance is the
+    timing term s^2 (xi xi^T + xi xi^T)."""
+    import gtsam
+
+    from covo_gtsam.calibration import timing_covariance
+
+    rng = np.random.default_rng(5)
+    xi = np.array([0.3, -1.2, 0.5, 0.05, 0.2, -0.1])  # rad/s, m/s
+    dt, s = 1 / 30, 0.003
+    T_stamps = gtsam.Pose3.Expmap(dt * xi)
+    errs = []
+    for tau_ref, tau_cur in rng.normal(0, s, size=(20000, 2)):
+        T_cap = gtsam.Pose3.Expmap(tau_ref * xi).inverse() * gtsam.Pose3.Expmap((dt + tau_cur) * xi)
+        errs.append(gtsam.Pose3.Logmap(T_stamps.between(T_cap)))
+    emp = np.cov(np.array(errs).T)
+    pred = timing_covariance(np.stack([xi, xi]), s)
+    np.testing.assert_allclose(emp, pred, atol=0.03 * np.abs(pred).max())
+    # the full model adds it to kappa * C_points + frame term
+    P = np.eye(6) * 1e-6
+    C = sensor_covariance(P, 2.0, 0.001, 0.002, 1, np.stack([xi, xi]), s)
+    np.testing.assert_allclose(C, sensor_covariance(P, 2.0, 0.001, 0.002) + pred)
+
+
+def test_fit_recovers_the_timing_term():
+    """Errors drawn with a timing term (tau 3 ms) over twists of varying speed give back tau."""
+    from covo_gtsam.calibration import timing_covariance
+
+    rng = np.random.default_rng(6)
+    n = 2000
+    P = _random_spd(rng, n) * rng.uniform(0.2, 3.0, size=(n, 1, 1)) * 0.02
+    twists = rng.normal(size=(n, 2, 6)) * np.array([1.0] * 3 + [0.3] * 3)
+    C = sensor_covariance(P, 2.0, np.deg2rad(0.1), 0.0005) + timing_covariance(twists, 0.003)
+    e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=(n, 6)))
+    fit = fit_sensor_terms(e, P, twists=twists)
+    assert fit.timing_sigma_s == pytest.approx(0.003, rel=0.1)
+    assert fit.correlation_factor == pytest.approx(2.0, rel=0.15)
+    with pytest.raises(InputError, match="twists"):
+        fit_sensor_terms(e, P, twists=twists[:5])

@@ -1,0 +1,157 @@
+"""Per-pair integrity check without ground truth: two depth-free estimates of the same pair.
+
+A pair's 3D-3D estimate uses the depth images of both frames. Each point's bearing (its pixel)
+does not depend on depth, so the pair can also be estimated twice from reprojection alone:
+
+* forward: the reference points ``X_ref`` (reference depth) projected into the current image,
+  against the current points' bearings;
+* backward: the current points ``X_cur`` (current depth) projected into the reference image,
+  against the reference points' bearings.
+
+Each uses the depth of one frame only, so a depth image with a gross or systematic error (e.g.
+taken at another instant than its colour image during a fast turn) pulls the two apart. Both are
+one Gauss-Newton step from the 3D-3D estimate ``T = T_ref,cur`` (right perturbation
+``T Exp(xi)``, tangent ``[omega, v]``), which is enough at the small corrections a consistent
+pair has: ``delta = H^-1 J^T W r`` with ``H = J^T W J``, ``W`` the inverse of the pixel noise plus
+the projected covariance of the projected point. The statistic is
+``q = max(delta_f^T H_f delta_f, delta_b^T H_b delta_b)``: how far each depth-free estimate lies
+from the 3D-3D one in its own uncertainty. It is not chi2-distributed (the 3D-3D estimate shares
+the points, and a one-sided reprojection fit with noisy 3-D sources is biased, errors in
+variables), so :class:`IntegrityScale` takes its scale from the run itself.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import skew
+
+#: Degrees of freedom of the integrity statistic.
+INTEGRITY_DOF = 6
+#: Median of chi2(6).
+CHI2_6_MEDIAN = 5.3481
+
+
+@dataclass(frozen=True)
+class IntegrityResult:
+    """``statistic`` q (about chi2(6) for a consistent pair), the forward and backward corrections
+    ``delta_forward``/``delta_backward`` (6,) to ``T_ref,cur`` (tangent ``[omega, v]``, rad and m)
+    and their covariances (6, 6)."""
+
+    statistic: float
+    delta_forward: np.ndarray
+    delta_backward: np.ndarray
+    cov_forward: np.ndarray
+    cov_backward: np.ndarray
+
+    def inflate(self, covariance: np.ndarray, quality: float) -> np.ndarray:
+        """The covariance of a flagged pair: scaled by ``quality / median chi2(6)`` (the pair
+        disagrees that many times more than the run's typical pair), plus :meth:`inflation`."""
+        return covariance * max(1.0, quality / CHI2_6_MEDIAN) + self.inflation()
+
+    def inflation(self) -> np.ndarray:
+        """6x6 covariance that covers the disagreement at two standard deviations:
+        ``4 (delta_f delta_f^T + delta_b delta_b^T)``. A pair whose depth of one frame is wrong has
+        its 3D-3D estimate off by about the correction of the estimate that does not use that
+        depth; one Gauss-Newton step undershoots that correction, hence the margin."""
+        return 4.0 * (np.outer(self.delta_forward, self.delta_forward)
+                      + np.outer(self.delta_backward, self.delta_backward))
+
+
+def projection_jacobian(Y: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    """d(pixel)/dY (N, 2, 3) of the pinhole projection ``(fx X/Z, fy Y/Z)`` at camera-frame points Y."""
+    x, y, z = Y[:, 0], Y[:, 1], Y[:, 2]
+    J = np.zeros((Y.shape[0], 2, 3))
+    J[:, 0, 0] = fx / z
+    J[:, 0, 2] = -fx * x / z**2
+    J[:, 1, 1] = fy / z
+    J[:, 1, 2] = -fy * y / z**2
+    return J
+
+
+def _pixels(Y: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    return np.stack([fx * Y[:, 0] / Y[:, 2], fy * Y[:, 1] / Y[:, 2]], axis=1)
+
+
+def reprojection_system(T: np.ndarray, X_src: np.ndarray, Q_src: np.ndarray, X_dst: np.ndarray,
+                        fx: float, fy: float, pixel_sigma: float, forward: bool):
+    """Residuals (N, 2), Jacobians (N, 2, 6) with respect to the right perturbation of ``T``,
+    residual covariances (N, 2, 2) of the reprojection of ``X_src`` against the bearings of
+    ``X_dst``, and the residuals' Jacobians with respect to ``X_src`` and ``X_dst`` (N, 2, 3).
+
+    ``forward``: ``X_src`` are reference points, mapped by ``T^-1`` into the current frame;
+    otherwise current points, mapped by ``T`` into the reference frame. ``T`` is 4x4 T_ref,cur;
+    pixels are ``(fx x/z, fy y/z)`` (the principal point cancels in the residual).
+    """
+    R, t = T[:3, :3], T[:3, 3]
+    if forward:
+        Y = (X_src - t) @ R               # R^T (X - t)
+        dY = np.concatenate([skew(Y), -np.broadcast_to(np.eye(3), (len(Y), 3, 3))], axis=2)
+        Q_Y = np.einsum("ji,njk,kl->nil", R, Q_src, R)
+    else:
+        Y = X_src @ R.T + t
+        dY = np.concatenate([-R @ skew(X_src), np.broadcast_to(R, (len(Y), 3, 3))], axis=2)
+        Q_Y = np.einsum("ij,njk,lk->nil", R, Q_src, R)
+    Jp = projection_jacobian(Y, fx, fy)
+    r = _pixels(X_dst, fx, fy) - _pixels(Y, fx, fy)
+    J = Jp @ dY
+    S = np.einsum("nij,njk,nlk->nil", Jp, Q_Y, Jp) + pixel_sigma**2 * np.eye(2)
+    dr_src = -Jp @ (R.T if forward else R)
+    dr_dst = projection_jacobian(X_dst, fx, fy)
+    return r, J, S, dr_src, dr_dst
+
+
+def _gauss_newton_gain(J: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-residual gains (N, 6, 2) of the weighted Gauss-Newton step and ``H^-1`` (6, 6)."""
+    W = np.linalg.inv(S)
+    H = np.einsum("nji,njk,nkl->il", J, W, J)
+    cov = np.linalg.inv(H)
+    return np.einsum("ij,nkj,nkl->nil", cov, J, W), cov
+
+
+def depth_free_check(T: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray, Q_cur: np.ndarray,
+                     fx: float, fy: float, pixel_sigma: float) -> IntegrityResult:
+    """The integrity statistic of a pair (module docstring). ``T``: 4x4 T_ref,cur; points (N, 3)
+    in metres with covariances (N, 3, 3) in m^2 (the estimator's inputs); ``fx, fy`` in pixels;
+    ``pixel_sigma`` the keypoints' pixel noise (px). Needs N >= 3 points in front of both cameras."""
+    r_f, J_f, S_f, src_f, dst_f = reprojection_system(T, X_ref, Q_ref, X_cur, fx, fy, pixel_sigma, True)
+    r_b, J_b, S_b, src_b, dst_b = reprojection_system(T, X_cur, Q_cur, X_ref, fx, fy, pixel_sigma, False)
+    G_f, C_f = _gauss_newton_gain(J_f, S_f)
+    G_b, C_b = _gauss_newton_gain(J_b, S_b)
+    d_f, d_b = np.einsum("nij,nj->i", G_f, r_f), np.einsum("nij,nj->i", G_b, r_b)
+    # each depth-free estimate against the 3D-3D one: a wrong depth image of one frame moves the
+    # 3D-3D estimate away from the estimate that does not use it (and a depth scale error, which
+    # the bearings cannot see, away from both)
+    q = float(max(d_f @ np.linalg.solve(C_f, d_f), d_b @ np.linalg.solve(C_b, d_b)))
+    return IntegrityResult(q, d_f, d_b, C_f, C_b)
+
+
+class IntegrityScale:
+    """Online scale of the integrity statistic, learnt from the run itself (no ground truth).
+
+    On real data the depth-free and 3D-3D estimates disagree more than the per-point model says
+    (its depth errors are partly systematic), by a factor that depends on the sensor. The typical
+    pair is taken as consistent: the scale is the median of the raw statistics of the last
+    ``window`` pairs over the median of chi2(6), and :meth:`normalise` divides by it, so a typical
+    pair reads about chi2(6) and a pair whose depth-free estimates disagree far more than the
+    run's usual stands out. The first pairs of a run set the scale and are not flagged.
+    """
+
+    def __init__(self, window: int = 300) -> None:
+        self._values: deque[float] = deque(maxlen=window)
+
+    def normalise(self, statistic: float) -> float:
+        """The statistic divided by the run's scale (this pair included in the median)."""
+        if not np.isfinite(statistic):
+            return float("inf")
+        self._values.append(float(statistic))
+        scale = float(np.median(self._values)) / CHI2_6_MEDIAN
+        return statistic / scale if scale > 0 else 0.0
+
+    @property
+    def scale(self) -> float:
+        """Current scale (1 before any pair)."""
+        return float(np.median(self._values)) / CHI2_6_MEDIAN if self._values else 1.0
