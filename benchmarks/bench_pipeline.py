@@ -38,13 +38,14 @@ from covo_gtsam.frontend import (
 from covo_gtsam.io import format_relative_line, format_tum_line
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 from covo_gtsam.pipeline import PREFETCH
-from covo_gtsam.rolling_shutter import compensate_pair
+from covo_gtsam.rolling_shutter import compensate_points, frame_twists
 
 
 def compensated_solve(pairs, res, dt: float, height: int, readout: float):
     """The odometry's second solve: points moved to their image's timestamp with the pair's twist."""
-    X_ref, X_cur = compensate_pair(pairs.X_ref, pairs.uv_ref[:, 1], pairs.X_cur, pairs.uv_cur[:, 1], res.pose, dt,
-                                   height, readout)
+    twist_ref, twist_cur = frame_twists(res.pose, dt)
+    X_ref = compensate_points(pairs.X_ref, pairs.uv_ref[:, 1], twist_ref, height, readout)
+    X_cur = compensate_points(pairs.X_cur, pairs.uv_cur[:, 1], twist_cur, height, readout)
     return estimate_relative_pose(X_ref, X_cur, pairs.Q_ref, pairs.Q_cur, initial=res.pose)
 
 

@@ -13,11 +13,24 @@ frame to frame); ``s_t`` (m) is a translation error per interval that persists o
 of a pair (it comes with the scene's depth errors), so its standard deviation grows with ``k``.
 The growth laws were chosen on keyframe pairs spanning 1-15 intervals (docs/consistency.md).
 
-A timing term adds, for each frame ``f`` of the pair, ``tau^2 xi_f xi_f^T``: ``xi_f`` is the
-camera's body twist ``[omega, v]`` at that frame (rad/s, m/s) and ``tau`` (s) the standard deviation
-of the error of a frame's timestamp as a time of capture (stamp jitter, the colour-depth offset,
-the readout). A frame taken ``d`` seconds away from its stamp has its pose off by ``Exp(d xi_f)``,
-so this error grows with the speed of the camera, and vanishes for a camera at rest.
+Errors shared by all points of a frame (:mod:`covo_gtsam.frame_errors`) add terms
+``sigma_j^2 B_j``: each ``B_j`` (6x6) is the pair's covariance per unit of a frame-level error
+source, built from the pair's geometry and the camera's motion, and ``sigma_j`` is that source's
+physical size (:data:`ERROR_TERMS`):
+
+* ``timing`` (s): a frame captured off its timestamp; ``B = sum_f xi_f xi_f^T`` over the body twists
+  ``xi_f`` ``[omega, v]`` (rad/s, m/s) at the pair's frames, since the frame's pose is then off by
+  ``Exp(d xi_f)`` (:func:`timing_covariance`);
+* ``depth_scale`` (relative): a frame's depths all scaled by ``1 + e``;
+* ``depth_time`` (dimensionless): the depth image's time off by ``c`` times the frame's stamped
+  colour-depth offset (a depth image delivered with the neighbouring colour image);
+* ``rolling_shutter`` (dimensionless): the twist the rolling-shutter compensation uses at the
+  current frame off by ``c`` times half the change of the pair twist since the previous pair;
+* ``stamp_jitter`` (s): like ``timing``, the jitter of the stamps around the camera's regular
+  clock: in full for a frame the frame clock has not placed yet (the first frames of a run), and
+  ``1/n`` of its variance for a frame placed by a clock fitted to ``n`` stamps (the uncertainty of
+  the fitted phase); a prior, not fitted (1.9 ms is the scatter of the shared fr1 colour stamps
+  around a regular clock).
 
 :func:`fit_sensor_terms` estimates ``kappa, s_r, s_t`` from the errors of consecutive pairs
 against ground truth, by maximising the Gaussian likelihood; it needs SciPy
@@ -26,29 +39,46 @@ against ground truth, by maximising the Gaussian likelihood; it needs SciPy
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["SensorTerms", "frame_covariance", "timing_covariance", "sensor_covariance", "log_likelihood",
-           "fit_sensor_terms"]
+__all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance", "sensor_covariance",
+           "log_likelihood", "fit_sensor_terms"]
+
+#: Frame-level error terms and the :class:`~covo_gtsam.odometry.OdometryConfig` field holding each sigma.
+ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
+               "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s"}
+#: The terms of the default model (the others fitted unstably across the halves of the shared
+#: fr1_rpy frames; docs/cross_validation.md).
+DEFAULT_TERMS = ("timing", "rolling_shutter")
+#: Terms held at their configured value (a prior) when the others are fitted.
+PRIOR_TERMS = ("stamp_jitter",)
 
 
 @dataclass(frozen=True)
 class SensorTerms:
     """Fitted sensor terms: ``correlation_factor`` (kappa), per-interval standard deviations
     ``frame_sigma_rot_deg`` (degrees per axis) and ``frame_sigma_trans_m`` (metres per axis), the
-    mean log-likelihood per pair at the fit, the number of pairs it used, and the timing term's
-    ``timing_sigma_s`` (seconds; 0 when not fitted)."""
+    mean log-likelihood per pair at the fit, the number of pairs it used, and ``sigmas``: the
+    fitted sigma of each frame-level term (names of :data:`ERROR_TERMS`)."""
 
     correlation_factor: float
     frame_sigma_rot_deg: float
     frame_sigma_trans_m: float
     log_likelihood: float
     pairs: int
-    timing_sigma_s: float = 0.0
+    sigmas: dict = field(default_factory=dict)
+
+    def config_values(self) -> dict:
+        """The fit as :class:`~covo_gtsam.odometry.OdometryConfig` settings."""
+        out = {"correlation_factor": self.correlation_factor, "frame_sigma_rot_deg": self.frame_sigma_rot_deg,
+               "frame_sigma_trans_m": self.frame_sigma_trans_m}
+        out.update({ERROR_TERMS[k]: v for k, v in self.sigmas.items()})
+        return out
 
 
 def frame_covariance(sigma_rot_rad: float, sigma_trans_m: float, intervals: np.ndarray | int = 1) -> np.ndarray:
@@ -60,25 +90,29 @@ def frame_covariance(sigma_rot_rad: float, sigma_trans_m: float, intervals: np.n
     return diag[..., :, None] * np.eye(6)
 
 
-def timing_covariance(twists: np.ndarray, timing_sigma_s: float) -> np.ndarray:
+def timing_covariance(twists: np.ndarray, timing_sigma_s: float = 1.0) -> np.ndarray:
     """Timing term(s) (..., 6, 6): ``tau^2 sum_f xi_f xi_f^T`` over the body twists (..., F, 6)
-    ``[omega, v]`` (rad/s, m/s) of a pair's F frames; ``tau = timing_sigma_s`` (s)."""
+    ``[omega, v]`` (rad/s, m/s) of a pair's F frames; ``tau = timing_sigma_s`` (s). With the
+    default ``tau = 1`` it is the term's basis ``B``."""
     xi = np.asarray(twists, dtype=float)
     return timing_sigma_s**2 * np.einsum("...fi,...fj->...ij", xi, xi)
 
 
 def sensor_covariance(point_cov: np.ndarray, correlation_factor: float, sigma_rot_rad: float,
-                      sigma_trans_m: float, intervals: np.ndarray | int = 1, twists: np.ndarray | None = None,
-                      timing_sigma_s: float = 0.0) -> np.ndarray:
-    """Reported covariance(s) ``kappa * C_points + frame_covariance(s_r, s_t, k)``, plus
-    ``timing_covariance(twists, timing_sigma_s)`` when ``twists`` (..., F, 6) are given.
+                      sigma_trans_m: float, intervals: np.ndarray | int = 1,
+                      bases: Mapping[str, np.ndarray] | None = None,
+                      sigmas: Mapping[str, float] | None = None) -> np.ndarray:
+    """Reported covariance(s) ``kappa * C_points + frame_covariance(s_r, s_t, k) + sum_j sigma_j^2 B_j``.
 
-    ``point_cov`` (..., 6, 6) and ``intervals`` (...,) broadcast; tangent ``[omega, v]``.
+    ``point_cov`` (..., 6, 6), ``intervals`` (...,) and each basis ``bases[j]`` (..., 6, 6)
+    broadcast; ``sigmas[j]`` is the sigma of term ``j`` (0 if absent); tangent ``[omega, v]``.
     """
     C = correlation_factor * np.asarray(point_cov, dtype=float) + frame_covariance(
         sigma_rot_rad, sigma_trans_m, intervals)
-    if twists is not None and timing_sigma_s > 0:
-        C = C + timing_covariance(twists, timing_sigma_s)
+    for name, B in (bases or {}).items():
+        sigma = (sigmas or {}).get(name, 0.0)
+        if sigma > 0:
+            C = C + sigma**2 * np.asarray(B, dtype=float)
     return C
 
 
@@ -97,16 +131,16 @@ def log_likelihood(errors: np.ndarray, covs: np.ndarray) -> float:
 
 
 def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation_factor: bool = True,
-                     twists: np.ndarray | None = None) -> SensorTerms:
-    """Maximum-likelihood ``kappa, s_r, s_t`` from consecutive pairs (one interval each); with
-    ``fit_correlation_factor=False`` kappa stays 1 and only the frame term is fitted. With
-    ``twists`` (N, F, 6), the body twists at each pair's frames, the timing term's ``tau`` is
-    fitted too (:func:`timing_covariance`).
+                     bases: Mapping[str, np.ndarray] | None = None, fixed: np.ndarray | None = None) -> SensorTerms:
+    """Maximum-likelihood ``kappa, s_r, s_t`` and the sigma of each frame-level term in ``bases``
+    from consecutive pairs (one interval each); with ``fit_correlation_factor=False`` kappa stays 1.
 
     ``errors`` (N, 6): ``Log(T_est^-1 T_true)`` of each pair
     (:func:`covo_gtsam.metrics.relative_pose_tangent_errors`; right perturbation, ``[omega, v]``);
     ``point_covs`` (N, 6, 6): the estimator's per-point covariance of the same pairs (run with
-    ``correlation_factor = 1`` and zero frame sigmas). Needs at least 10 pairs.
+    ``correlation_factor = 1`` and no other term); ``bases``: term name -> (N, 6, 6) basis of
+    each pair (:attr:`~covo_gtsam.odometry.OdometryStep.error_bases`); ``fixed`` (N, 6, 6): known
+    terms added as they are (e.g. a prior's). Needs at least 10 pairs.
     """
     errors = np.asarray(errors, dtype=float)
     point_covs = np.asarray(point_covs, dtype=float)
@@ -116,36 +150,44 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
         raise InputError(f"need at least 10 pairs to fit the sensor terms, got {len(errors)}")
     if not (np.all(np.isfinite(errors)) and np.all(np.isfinite(point_covs))):
         raise InputError("errors and covariances must be finite")
-    if twists is not None:
-        twists = np.asarray(twists, dtype=float)
-        if twists.ndim != 3 or twists.shape[0] != len(errors) or twists.shape[2] != 6 or not np.all(np.isfinite(twists)):
-            raise InputError(f"twists must be finite (N, F, 6) for N = {len(errors)} pairs, got {twists.shape}")
+    bases = {k: np.asarray(v, dtype=float) for k, v in (bases or {}).items()}
+    fixed = np.zeros_like(point_covs) if fixed is None else np.asarray(fixed, dtype=float)
+    if fixed.shape != point_covs.shape or not np.all(np.isfinite(fixed)):
+        raise InputError(f"fixed terms must be finite (N, 6, 6) for N = {len(errors)} pairs, got {fixed.shape}")
+    for name, B in bases.items():
+        if B.shape != point_covs.shape or not np.all(np.isfinite(B)):
+            raise InputError(f"basis {name!r} must be finite (N, 6, 6) for N = {len(errors)} pairs, got {B.shape}")
     try:
         from scipy.optimize import minimize
     except ImportError as exc:  # pragma: no cover - depends on the installation
         raise ImportError('fitting the sensor terms needs SciPy: pip install "covo-gtsam[calibrate]"') from exc
+    names = list(bases)
 
-    timing = twists is not None
-
-    def params(x: np.ndarray) -> tuple[float, float, float, float]:
-        p = tuple(np.exp(x)) if fit_correlation_factor else (1.0, *np.exp(x))
-        return p if timing else (*p, 0.0)
+    def params(x: np.ndarray) -> tuple[float, float, float, dict]:
+        p = np.exp(x)
+        if not fit_correlation_factor:
+            p = np.concatenate([[1.0], p])
+        return p[0], p[1], p[2], dict(zip(names, p[3:]))
 
     def cost(x: np.ndarray) -> float:
-        kappa, s_r, s_t, tau = params(x)
-        return -log_likelihood(errors, sensor_covariance(point_covs, kappa, s_r, s_t, 1, twists, tau))
+        kappa, s_r, s_t, sig = params(x)
+        return -log_likelihood(errors, sensor_covariance(point_covs, kappa, s_r, s_t, 1, bases, sig) + fixed)
 
     # start from moment matching: kappa 1, frame variances = mean squared error per axis, then
-    # from larger kappa and smaller frame terms (the likelihood can have more than one maximum)
+    # from larger kappa and smaller frame terms (the likelihood can have more than one maximum);
+    # each frame-level term starts where it explains a tenth of the mean squared error
     start = np.log([1.0, np.sqrt(np.mean(errors[:, :3] ** 2)) + 1e-9, np.sqrt(np.mean(errors[:, 3:] ** 2)) + 1e-9])
+    msq = np.mean(np.einsum("ni,ni->n", errors, errors))
+    term_start = [np.log(np.sqrt(0.1 * msq / max(np.mean(np.trace(bases[k], axis1=1, axis2=2)), 1e-30)))
+                  for k in names]
     best = None
     for shift in (0.0, 1.0, 2.0, 3.0) if fit_correlation_factor else (0.0,):
         x0 = start + np.array([shift, -0.3 * shift, -0.3 * shift])
-        x0 = x0 if fit_correlation_factor else x0[1:]
-        if timing:  # from 2 ms, a typical stamp jitter
-            x0 = np.append(x0, np.log(0.002))
-        res = minimize(cost, x0, method="Nelder-Mead", options={"maxiter": 4000, "xatol": 1e-6, "fatol": 1e-10})
+        x0 = np.concatenate([x0 if fit_correlation_factor else x0[1:], term_start])
+        res = minimize(cost, x0, method="Nelder-Mead",
+                       options={"maxiter": 4000 * (1 + len(names)), "xatol": 1e-6, "fatol": 1e-10})
         if best is None or res.fun < best.fun:
             best = res
-    kappa, s_r, s_t, tau = params(best.x)
-    return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors), float(tau))
+    kappa, s_r, s_t, sig = params(best.x)
+    return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors),
+                       {k: float(v) for k, v in sig.items()})

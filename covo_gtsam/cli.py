@@ -209,18 +209,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out = check_output_dir(Path(args.out))
     fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
                                      progress=not args.quiet)
-    summary = {"sequence": seq.name, "pairs": fit.pairs, "correlation_factor": fit.correlation_factor,
-               "frame_sigma_rot_deg": fit.frame_sigma_rot_deg, "frame_sigma_trans_m": fit.frame_sigma_trans_m,
-               "timing_sigma_s": fit.timing_sigma_s, "log_likelihood_per_pair": fit.log_likelihood,
+    summary = {"sequence": seq.name, "pairs": fit.pairs, **fit.config_values(),
+               "log_likelihood_per_pair": fit.log_likelihood,
                "per_point_model_anees": [result.metrics.get("anees_translation"), result.metrics.get("anees_rotation")]}
     write_json(out / "calibration.json", summary)
     print(f"{fit.pairs} consecutive pairs with ground truth; the per-point model alone gives ANEES t "
           f"{summary['per_point_model_anees'][0]:.2f} r {summary['per_point_model_anees'][1]:.2f} (3 = consistent)")
     print("maximum-likelihood sensor terms (configuration lines):")
-    print(f"correlation_factor = {fit.correlation_factor:.3g}")
-    print(f"frame_sigma_rot_deg = {fit.frame_sigma_rot_deg:.3g}")
-    print(f"frame_sigma_trans_m = {fit.frame_sigma_trans_m:.3g}")
-    print(f"timing_sigma_s = {fit.timing_sigma_s:.3g}")
+    for name, value in fit.config_values().items():
+        print(f"{name} = {value:.3g}")
     print(f"results in {out}")
     return 0
 
@@ -339,7 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
         sub, "calibrate",
         help="fit the sensor terms of the covariance on a sequence with ground truth",
         description="Fit the sensor terms of the reported covariance (correlation_factor, frame_sigma_rot_deg, "
-        "frame_sigma_trans_m, timing_sigma_s; see covo_gtsam.calibration) by maximum likelihood on the consecutive frame pairs "
+        "frame_sigma_trans_m and the frame-level terms timing_sigma_s, rolling_shutter_factor; see covo_gtsam.calibration) by maximum likelihood on the consecutive frame pairs "
         "of a sequence with ground truth, for a sensor other than the Kinect v1 the defaults belong to. Runs "
         "the odometry with the per-point model alone into OUT/per_point_run, writes OUT/calibration.json and "
         "prints the configuration lines. Needs SciPy.",

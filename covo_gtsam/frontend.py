@@ -507,7 +507,8 @@ class FrameData:
     Per keypoint i of :attr:`features` (N of them): ``valid[i]`` tells whether it has usable
     depth; ``points[i]`` (camera frame, metres), ``covariances[i]`` (m^2), ``depths[i]``,
     ``uv_undistorted[i]`` and ``theta[i]`` (surface angle, rad) are NaN (0 for depth/theta)
-    where not valid. ``valid_index`` lists the valid keypoints and ``valid_features`` is the
+    where not valid. ``depth_offset`` is the depth image's capture time minus the colour image's
+    (seconds; 0 for a synchronised camera). ``valid_index`` lists the valid keypoints and ``valid_features`` is the
     matching subset, both precomputed.
     """
 
@@ -519,6 +520,7 @@ class FrameData:
     depths: np.ndarray = field(repr=False)
     uv_undistorted: np.ndarray = field(repr=False)
     theta: np.ndarray = field(repr=False)
+    depth_offset: float = 0.0
     valid_index: np.ndarray = field(init=False, repr=False)
     valid_features: Features = field(init=False, repr=False)
 

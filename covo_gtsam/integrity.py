@@ -78,38 +78,52 @@ def _pixels(Y: np.ndarray, fx: float, fy: float) -> np.ndarray:
 
 def reprojection_system(T: np.ndarray, X_src: np.ndarray, Q_src: np.ndarray, X_dst: np.ndarray,
                         fx: float, fy: float, pixel_sigma: float, forward: bool):
-    """Residuals (N, 2), Jacobians (N, 2, 6) with respect to the right perturbation of ``T``,
-    residual covariances (N, 2, 2) of the reprojection of ``X_src`` against the bearings of
-    ``X_dst``, and the residuals' Jacobians with respect to ``X_src`` and ``X_dst`` (N, 2, 3).
+    """Residuals (N, 2), Jacobians (N, 2, 6) with respect to the right perturbation of ``T`` and
+    residual covariances (N, 2, 2) of the reprojection of ``X_src`` against the bearings of ``X_dst``.
 
     ``forward``: ``X_src`` are reference points, mapped by ``T^-1`` into the current frame;
     otherwise current points, mapped by ``T`` into the reference frame. ``T`` is 4x4 T_ref,cur;
     pixels are ``(fx x/z, fy y/z)`` (the principal point cancels in the residual).
     """
     R, t = T[:3, :3], T[:3, 3]
+    n = len(X_src)
+    dY = np.empty((n, 3, 6))
     if forward:
         Y = (X_src - t) @ R               # R^T (X - t)
-        dY = np.concatenate([skew(Y), -np.broadcast_to(np.eye(3), (len(Y), 3, 3))], axis=2)
-        Q_Y = np.einsum("ji,njk,kl->nil", R, Q_src, R)
+        dY[:, :, :3] = skew(Y)
+        dY[:, :, 3:] = -np.eye(3)
+        M = R.T
     else:
         Y = X_src @ R.T + t
-        dY = np.concatenate([-R @ skew(X_src), np.broadcast_to(R, (len(Y), 3, 3))], axis=2)
-        Q_Y = np.einsum("ij,njk,lk->nil", R, Q_src, R)
+        dY[:, :, :3] = -R @ skew(X_src)
+        dY[:, :, 3:] = R
+        M = R
     Jp = projection_jacobian(Y, fx, fy)
+    JpM = Jp @ M                          # d(pixel)/d(X_src), up to the sign
     r = _pixels(X_dst, fx, fy) - _pixels(Y, fx, fy)
-    J = Jp @ dY
-    S = np.einsum("nij,njk,nlk->nil", Jp, Q_Y, Jp) + pixel_sigma**2 * np.eye(2)
-    dr_src = -Jp @ (R.T if forward else R)
-    dr_dst = projection_jacobian(X_dst, fx, fy)
-    return r, J, S, dr_src, dr_dst
+    S = JpM @ Q_src @ JpM.transpose(0, 2, 1)
+    S[:, 0, 0] += pixel_sigma**2
+    S[:, 1, 1] += pixel_sigma**2
+    return r, Jp @ dY, S
 
 
-def _gauss_newton_gain(J: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-residual gains (N, 6, 2) of the weighted Gauss-Newton step and ``H^-1`` (6, 6)."""
-    W = np.linalg.inv(S)
-    H = np.einsum("nji,njk,nkl->il", J, W, J)
+def _inv2(S: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric 2x2 matrices (N, 2, 2), closed form."""
+    a, b, d = S[:, 0, 0], S[:, 0, 1], S[:, 1, 1]
+    det = a * d - b * b
+    W = np.empty_like(S)
+    W[:, 0, 0], W[:, 1, 1] = d / det, a / det
+    W[:, 0, 1] = W[:, 1, 0] = -b / det
+    return W
+
+
+def _gauss_newton_step(r: np.ndarray, J: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted Gauss-Newton step ``H^-1 J^T W r`` (6,) and ``H^-1`` (6, 6)."""
+    JtW = J.transpose(0, 2, 1) @ _inv2(S)
+    H = (JtW @ J).sum(axis=0)
+    b = (JtW @ r[:, :, None]).sum(axis=0)[:, 0]
     cov = np.linalg.inv(H)
-    return np.einsum("ij,nkj,nkl->nil", cov, J, W), cov
+    return cov @ b, cov
 
 
 def depth_free_check(T: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray, Q_cur: np.ndarray,
@@ -117,11 +131,8 @@ def depth_free_check(T: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref:
     """The integrity statistic of a pair (module docstring). ``T``: 4x4 T_ref,cur; points (N, 3)
     in metres with covariances (N, 3, 3) in m^2 (the estimator's inputs); ``fx, fy`` in pixels;
     ``pixel_sigma`` the keypoints' pixel noise (px). Needs N >= 3 points in front of both cameras."""
-    r_f, J_f, S_f, src_f, dst_f = reprojection_system(T, X_ref, Q_ref, X_cur, fx, fy, pixel_sigma, True)
-    r_b, J_b, S_b, src_b, dst_b = reprojection_system(T, X_cur, Q_cur, X_ref, fx, fy, pixel_sigma, False)
-    G_f, C_f = _gauss_newton_gain(J_f, S_f)
-    G_b, C_b = _gauss_newton_gain(J_b, S_b)
-    d_f, d_b = np.einsum("nij,nj->i", G_f, r_f), np.einsum("nij,nj->i", G_b, r_b)
+    d_f, C_f = _gauss_newton_step(*reprojection_system(T, X_ref, Q_ref, X_cur, fx, fy, pixel_sigma, True))
+    d_b, C_b = _gauss_newton_step(*reprojection_system(T, X_cur, Q_cur, X_ref, fx, fy, pixel_sigma, False))
     # each depth-free estimate against the 3D-3D one: a wrong depth image of one frame moves the
     # 3D-3D estimate away from the estimate that does not use it (and a depth scale error, which
     # the bearings cannot see, away from both)

@@ -17,16 +17,19 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from .calibration import frame_covariance, sensor_covariance
+from .calibration import ERROR_TERMS, frame_covariance, sensor_covariance, timing_covariance
 from .camera import Camera
 from .covariance import compose_covariance
 from .errors import ConfigError, CovoError, EstimationError, InputError
 from .estimator import ROBUST_KERNELS, RelativePoseResult, estimate_relative_pose
 from .factors import WEIGHTINGS
+from .clock import FrameClock, restamp
 from .integrity import IntegrityScale, depth_free_check
 from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
-from .rolling_shutter import compensate_pair
+from .frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, rolling_shutter_basis,
+                           transfer_gains)
+from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
 from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, check_bool, check_choice, check_int,
                          check_real)
 
@@ -51,6 +54,10 @@ _REAL_LIMITS = {
     "frame_sigma_trans_m": ("non-negative", None, 1e3),
     "frame_interval_s": ("positive", 1e-4, 1e3),
     "timing_sigma_s": ("non-negative", None, 1.0),
+    "depth_scale_sigma": ("non-negative", None, 1.0),
+    "depth_time_factor": ("non-negative", None, 100.0),
+    "rolling_shutter_factor": ("non-negative", None, 100.0),
+    "stamp_jitter_s": ("non-negative", None, 1.0),
     "integrity_threshold": ("positive", None, None),
     "rolling_shutter_s": ("non-negative", None, 1.0),
 }
@@ -105,7 +112,7 @@ class OdometryConfig:
     (seconds; 0 turns the compensation off). With it, each pair is solved once, the camera's
     velocity at both frames is taken from that solution (at the reference frame averaged with
     its own pair's velocity), the points are moved to their image's timestamp
-    (:func:`covo_gtsam.rolling_shutter.compensate_pair`) and the pair is solved again. 0.025 s
+    (:func:`covo_gtsam.rolling_shutter.compensate_points`) and the pair is solved again. 0.025 s
     suits the Kinect v1 (TUM freiburg1/2), chosen on the first half of the shared fr1_rpy frames.
 
     After ``restart_after`` consecutive lost frames the last tracked frame is usually out of
@@ -133,12 +140,19 @@ class OdometryConfig:
     variance_factor: bool = False
     max_rotation_deg: float = 30.0
     max_translation_m: float = 0.5
-    correlation_factor: float = 2.5
-    frame_sigma_rot_deg: float = 0.14
-    frame_sigma_trans_m: float = 0.00057
+    correlation_factor: float = 1.43
+    frame_sigma_rot_deg: float = 0.115
+    frame_sigma_trans_m: float = 0.000764
     frame_interval_s: float = 1.0 / 30.0
-    timing_sigma_s: float = 0.0029
-    integrity_threshold: float = 100.0
+    timing_sigma_s: float = 0.0006
+    integrity_threshold: float = 50.0
+    frame_clock: bool = True
+    depth_time_compensation: bool = False
+    depth_scale_sigma: float = 0.0
+    depth_time_factor: float = 0.0
+    rolling_shutter_factor: float = 1.33
+    stamp_jitter_s: float = 0.002
+    clock_window: int = 60
     restart_after: int = 5
     rolling_shutter_s: float = 0.025
 
@@ -150,11 +164,13 @@ class OdometryConfig:
         choices = {"weighting": WEIGHTINGS, "robust": ROBUST_KERNELS, "motion_model": MOTION_MODELS}
         for name, allowed in choices.items():
             check_choice(name, getattr(self, name), allowed)
-        for name in ("pixel_sigma_by_level", "use_surface_angle", "keyframes", "variance_factor"):
+        for name in ("pixel_sigma_by_level", "use_surface_angle", "keyframes", "variance_factor", "frame_clock",
+                     "depth_time_compensation"):
             check_bool(name, getattr(self, name))
         for name, (kind, lo, hi) in _REAL_LIMITS.items():
             check_real(name, getattr(self, name), kind, lo, hi)
         check_int("restart_after", self.restart_after, 1)
+        check_int("clock_window", self.clock_window, 3)
 
     def gap_noise(self) -> np.ndarray:
         """6x6 covariance of the unknown motion across a tracking gap (tangent [omega, v]):
@@ -170,14 +186,18 @@ class OdometryConfig:
         return frame_covariance(np.deg2rad(self.frame_sigma_rot_deg), self.frame_sigma_trans_m, self.frame_intervals(dt))
 
     def sensor_covariance(self, point_covariance: np.ndarray, dt: float | None = None,
-                          twists: np.ndarray | None = None) -> np.ndarray:
+                          bases: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """Reported 6x6 covariance of a pair whose frames are ``dt`` seconds apart, from the
         estimator's per-point covariance (tangent [omega, v]):
-        ``correlation_factor * point_covariance + frame_noise(dt)``, plus the timing term
-        ``timing_sigma_s^2 sum_f xi_f xi_f^T`` over the camera's body twists ``twists`` (F, 6)
-        (rad/s, m/s) at the pair's frames when given (:func:`covo_gtsam.calibration.timing_covariance`)."""
+        ``correlation_factor * point_covariance + frame_noise(dt) + sum_j sigma_j^2 B_j`` over the
+        pair's frame-level error bases ``bases`` (:data:`covo_gtsam.calibration.ERROR_TERMS`, each
+        sigma a field of this configuration)."""
         return sensor_covariance(point_covariance, self.correlation_factor, np.deg2rad(self.frame_sigma_rot_deg),
-                                 self.frame_sigma_trans_m, self.frame_intervals(dt), twists, self.timing_sigma_s)
+                                 self.frame_sigma_trans_m, self.frame_intervals(dt), bases, self.term_sigmas())
+
+    def term_sigmas(self) -> dict[str, float]:
+        """Sigma of each frame-level error term (:data:`covo_gtsam.calibration.ERROR_TERMS`)."""
+        return {name: getattr(self, fieldname) for name, fieldname in ERROR_TERMS.items()}
 
     def frame_intervals(self, dt: float | None) -> int:
         """Frame intervals between two frames ``dt`` seconds apart: ``round(dt / frame_interval_s)``,
@@ -249,11 +269,31 @@ class OdometryStep:
     velocity: np.ndarray | None = None
     quality: float | None = None
     flagged: bool = False
+    clock_offset: float = 0.0
+    clock_samples: int = 0
+    error_bases: dict | None = field(default=None, repr=False)
     result: RelativePoseResult | None = field(default=None, repr=False)
 
     @property
     def tracked(self) -> bool:
         return self.status in POSED_STATUSES
+
+
+def _seconds(value) -> float:
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise InputError(f"a timestamp must be a number (seconds), got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"a timestamp must be a number (seconds), got {value!r}") from None
+
+
+def check_depth_offset(offset) -> float:
+    """``offset`` (depth minus colour time, s) as float; InputError unless finite and at most 1 s."""
+    d = _seconds(offset)
+    if not (np.isfinite(d) and abs(d) <= 1.0):
+        raise InputError(f"the depth image is {d!r} s from its colour image; at most 1 s is usable")
+    return d
 
 
 class VisualOdometry:
@@ -281,15 +321,21 @@ class VisualOdometry:
         self._velocity: tuple[gtsam.Pose3, float] | None = None  # (T_prev,last, dt) of the last two tracked frames
         self._lost_run = 0  # consecutive lost frames since the last tracked one
         self._integrity = IntegrityScale()
+        self._clock = FrameClock(self.config.frame_interval_s, self.config.clock_window)
+        self._clock_offset: float | None = None  # offset of the frame being registered from the frame clock
         self.steps: list[OdometryStep] = []
+        #: keep each step's ``error_bases`` in :attr:`steps` (what :func:`covo_gtsam.pipeline.calibrate_sequence` fits)
+        self.keep_error_bases = False
 
     # -- front end -------------------------------------------------------------------------
-    def prepare(self, image: np.ndarray, depth: np.ndarray) -> FrameData:
+    def prepare(self, image: np.ndarray, depth: np.ndarray, depth_offset: float = 0.0) -> FrameData:
         """Features, 3D points and covariances of one frame (thread-safe; no GTSAM calls).
 
         ``image``: grey (H, W) or BGR (H, W, 3) uint8. ``depth``: metres (float) or raw
-        integer values divided by ``config.depth_scale``.
+        integer values divided by ``config.depth_scale``. ``depth_offset``: the depth image's
+        timestamp minus the colour image's (seconds, at most 1 s apart; 0 for a synchronised camera).
         """
+        depth_offset = check_depth_offset(depth_offset)
         depth = np.asarray(depth)
         image = np.asarray(image)
         if depth.shape[:2] != image.shape[:2] or depth.ndim != 2:
@@ -303,14 +349,17 @@ class VisualOdometry:
         orb = getattr(self._orb_local, "orb", None)
         if orb is None:
             orb = self._orb_local.orb = make_orb(self.config.frontend)
-        return prepare_frame(
+        frame = prepare_frame(
             to_grey(image), depth, self.camera, orb, self._noise, self.config.frontend,
             use_surface_angle=self.config.use_surface_angle,
             pixel_sigma_by_level=self.config.pixel_sigma_by_level,
         )
+        frame.depth_offset = depth_offset
+        return frame
 
     # -- the entry point ---------------------------------------------------------------------
-    def register_frame(self, image: np.ndarray | FrameData, depth: np.ndarray | None = None, timestamp: float = 0.0) -> OdometryStep:
+    def register_frame(self, image: np.ndarray | FrameData, depth: np.ndarray | None = None, timestamp: float = 0.0,
+                       depth_timestamp: float | None = None) -> OdometryStep:
         """Add a frame; return its relative pose to the reference frame, or a lost status.
 
         The reference is the current keyframe (``config.keyframes``) or the previous tracked
@@ -323,14 +372,21 @@ class VisualOdometry:
         ``timestamp`` (seconds) must be finite and not earlier than that of the previous frame
         (registered or marked lost); an equal one is accepted (some datasets repeat stamps): such
         a pair has no velocity, so no motion prediction or rolling-shutter compensation.
+        ``depth_timestamp`` (seconds, optional) is the depth image's stamp when the camera does
+        not synchronise its streams; a :class:`FrameData` carries its own ``depth_offset``.
 
         Raises:
             InputError: the timestamp is not a finite number or goes back in time (the frame is
                 not recorded).
         """
         timestamp = self._check_timestamp(timestamp)
+        self._clock_offset = self._clock.offset(timestamp) if self.config.frame_clock else None
         try:
-            frame = image if isinstance(image, FrameData) else self.prepare(image, depth)
+            if isinstance(image, FrameData):
+                frame = image
+            else:
+                offset = 0.0 if depth_timestamp is None else check_depth_offset(_seconds(depth_timestamp) - timestamp)
+                frame = self.prepare(image, depth, offset)
         except CovoError as exc:
             return self._record(OdometryStep(timestamp, "lost", reason=str(exc)))
         if self._ref is None:
@@ -386,14 +442,16 @@ class VisualOdometry:
         if pairs.num_inliers < min_pairs:
             step.reason = f"only {pairs.num_inliers} point pairs (need {min_pairs})"
             return step
-        dt = timestamp - ref_step.timestamp
+        # time between the two captures: the stamps' difference corrected by the frame clock
+        offset = self._clock_offset or 0.0
+        dt = timestamp - ref_step.timestamp - offset + ref_step.clock_offset
         try:
             X_ref, X_cur = pairs.X_ref, pairs.X_cur
             res = self._solve(X_ref, X_cur, pairs, None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
-            if self.config.rolling_shutter_s > 0 and dt > 0:
-                X_ref, X_cur = compensate_pair(pairs.X_ref, pairs.uv_ref[:, 1], pairs.X_cur, pairs.uv_cur[:, 1],
-                                               res.pose, dt, self.camera.height, self.config.rolling_shutter_s,
-                                               ref_step.velocity)
+            if dt > 0 and (self.config.rolling_shutter_s > 0 or self.config.depth_time_compensation):
+                twist_ref, twist_cur = frame_twists(res.pose, dt, ref_step.velocity)
+                X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
+                X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
                 res = self._solve(X_ref, X_cur, pairs, res.pose)
         except EstimationError as exc:
             step.reason = str(exc)
@@ -405,12 +463,12 @@ class VisualOdometry:
                            f"{self.config.max_rotation_deg:g} deg, {self.config.max_translation_m:g} m)")
             return step
         step.status = "tracked"
-        step.relative = res.pose
         step.velocity = gtsam.Pose3.Logmap(res.pose) / dt if dt > 0 else None
         twists = None
         if step.velocity is not None:
             twists = np.stack([step.velocity if ref_step.velocity is None else ref_step.velocity, step.velocity])
-        step.covariance = self.config.sensor_covariance(res.covariance, dt, twists)
+        step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, step.velocity)
+        step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         try:
             check = depth_free_check(res.pose.matrix(), X_ref, X_cur, pairs.Q_ref, pairs.Q_cur,
                                      self.camera.fx, self.camera.fy, self.config.pixel_sigma)
@@ -421,12 +479,63 @@ class VisualOdometry:
             step.flagged = not step.quality <= self.config.integrity_threshold
             if step.flagged:  # honest: the covariance covers the disagreement of the two depth-free estimates
                 step.covariance = check.inflate(step.covariance, step.quality)
+        step.relative = res.pose
+        if twists is not None and (ref_step.clock_offset or offset):
+            # the pose between the two stamps, as a back end fed with the stamps reads it
+            step.relative, Ad = restamp(res.pose, ref_step.clock_offset * twists[0], offset * twists[1])
+            step.covariance = Ad @ step.covariance @ Ad.T
+            step.error_bases = {k: Ad @ B @ Ad.T for k, B in step.error_bases.items()}
         step.result = res
-        step.pose = ref_step.pose.compose(res.pose)
-        step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, res.pose, step.covariance)
+        step.pose = ref_step.pose.compose(step.relative)
+        step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, step.relative,
+                                                  step.covariance)
         if self._keyframe_min_pairs == 0:
             self._keyframe_min_pairs = max(2 * min_pairs, int(self.config.keyframe_ratio * pairs.num_inliers))
         return step
+
+    def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
+                     frame: FrameData, ref_step: OdometryStep, velocity: np.ndarray | None) -> dict:
+        """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`)."""
+        ref_velocity = ref_step.velocity
+        M = T.matrix()
+        G_ref, G_cur = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
+        b_ref, b_cur = depth_scale_basis(G_ref, X_ref), depth_scale_basis(G_cur, X_cur)
+        bases = {"depth_scale": np.outer(b_ref, b_ref) + np.outer(b_cur, b_cur)}
+        if velocity is None:
+            return bases  # no motion: no timing terms
+        twist_ref = velocity if ref_velocity is None else 0.5 * (velocity + np.asarray(ref_velocity, dtype=float))
+        bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
+        # a frame's stamp keeps its full jitter until the frame clock places it, and then the
+        # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
+        n_cur = self._clock.samples if self._clock_offset is not None else 0
+        weights = np.array([1.0 / max(ref_step.clock_samples, 1), 1.0 / max(n_cur, 1)])
+        bases["stamp_jitter"] = timing_covariance(np.stack([twist_ref, velocity]) * np.sqrt(weights)[:, None])
+        h_ref = ref.depth_offset * depth_time_basis(G_ref, X_ref, twist_ref)
+        h_cur = frame.depth_offset * depth_time_basis(G_cur, X_cur, velocity)
+        bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)
+        if self.config.rolling_shutter_s > 0:
+            # the twist at the current frame may differ from the pair's mean by half its change
+            # since the previous pair; without a previous pair, by half of itself (both frames)
+            rows_cur = row_time_offsets(pairs.uv_cur[:, 1], self.camera.height, self.config.rolling_shutter_s)
+            if ref_velocity is not None:
+                u = rolling_shutter_basis(G_cur, X_cur, rows_cur) @ (0.5 * (velocity - np.asarray(ref_velocity)))
+                bases["rolling_shutter"] = np.outer(u, u)
+            else:
+                rows_ref = row_time_offsets(pairs.uv_ref[:, 1], self.camera.height, self.config.rolling_shutter_s)
+                u = (rolling_shutter_basis(G_cur, X_cur, rows_cur) + rolling_shutter_basis(G_ref, X_ref, rows_ref)) @ (
+                    0.5 * velocity)
+                bases["rolling_shutter"] = np.outer(u, u)
+        return bases
+
+    def _to_frame_time(self, fd: FrameData, X: np.ndarray, uv: np.ndarray, twist: np.ndarray) -> np.ndarray:
+        """A frame's points moved to its colour image's timestamp: the depths along their rays to
+        the bearings' time (:func:`covo_gtsam.frame_errors.depth_time_shift`), then each row to the
+        timestamp (:func:`covo_gtsam.rolling_shutter.compensate_points`)."""
+        if self.config.depth_time_compensation and fd.depth_offset:
+            X = depth_time_shift(X, twist, fd.depth_offset)
+        if self.config.rolling_shutter_s > 0:
+            X = compensate_points(X, uv[:, 1], twist, self.camera.height, self.config.rolling_shutter_s)
+        return X
 
     def _solve(self, X_ref: np.ndarray, X_cur: np.ndarray, pairs, initial: gtsam.Pose3 | None) -> RelativePoseResult:
         return estimate_relative_pose(
@@ -459,7 +568,9 @@ class VisualOdometry:
     def mark_lost(self, timestamp: float, reason: str) -> OdometryStep:
         """Report a frame that could not be used at all (e.g. an unreadable file); ``timestamp``
         is checked as in :meth:`register_frame`."""
-        return self._record(OdometryStep(self._check_timestamp(timestamp), "lost", reason=reason))
+        timestamp = self._check_timestamp(timestamp)
+        self._clock_offset = self._clock.offset(timestamp) if self.config.frame_clock else None
+        return self._record(OdometryStep(timestamp, "lost", reason=reason))
 
     def _check_timestamp(self, timestamp) -> float:
         """``timestamp`` as float; InputError unless finite and >= the previous frame's."""
@@ -478,9 +589,12 @@ class VisualOdometry:
         return t
 
     def _record(self, step: OdometryStep) -> OdometryStep:
+        step.clock_offset = self._clock_offset or 0.0
+        step.clock_samples = self._clock.samples if self._clock_offset is not None else 0
         self._lost_run = 0 if step.tracked else self._lost_run + 1
         # The history keeps poses only, so memory stays small on long runs.
-        self.steps.append(dataclasses.replace(step, result=None))
+        self.steps.append(dataclasses.replace(step, result=None,
+                                              error_bases=step.error_bases if self.keep_error_bases else None))
         return step
 
     # -- results -------------------------------------------------------------------------------

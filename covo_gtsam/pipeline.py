@@ -66,12 +66,13 @@ def check_output_dir(out_dir: Path) -> Path:
     return out_dir
 
 
-def _load_frame(vo: VisualOdometry, rgb_path: str, depth_path: str, depth_scale: float) -> FrameData | CovoError:
+def _load_frame(vo: VisualOdometry, rgb_path: str, depth_path: str, depth_scale: float,
+                depth_offset: float = 0.0) -> FrameData | CovoError:
     """Decode and prepare one frame; errors are returned (the frame is then reported lost)."""
     try:
         grey = load_grey(rgb_path)
         depth = load_depth(depth_path, depth_scale)
-        return vo.prepare(grey, depth)
+        return vo.prepare(grey, depth, depth_offset)
     except CovoError as exc:
         return exc
 
@@ -84,6 +85,7 @@ def run_sequence(
     max_frames: int | None = None,
     plots: bool = True,
     progress: bool = True,
+    keep_error_bases: bool = False,
 ) -> RunResult:
     """Run :class:`VisualOdometry` over ``seq`` and write the results folder.
 
@@ -97,6 +99,7 @@ def run_sequence(
         check_int("max_frames", max_frames, 1)
     config = config or OdometryConfig()
     vo = VisualOdometry(seq.camera if camera is None else camera, config)
+    vo.keep_error_bases = keep_error_bases
     out = check_output_dir(Path(out_dir))
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     start = time.perf_counter()
@@ -110,7 +113,9 @@ def run_sequence(
     with TrajectoryWriter(out / "trajectory.txt") as traj_w, RelativePoseWriter(out / "relative.txt") as rel_w, \
             ThreadPoolExecutor(max_workers=PREFETCH) as pool:
         def submit(i: int):
-            return pool.submit(_load_frame, vo, seq.rgb_paths[i], seq.depth_paths[i], config.depth_scale)
+            stamps = getattr(seq, "depth_timestamps", None)
+            offset = 0.0 if stamps is None else float(stamps[i] - seq.timestamps[i])
+            return pool.submit(_load_frame, vo, seq.rgb_paths[i], seq.depth_paths[i], config.depth_scale, offset)
 
         pending = deque(submit(i) for i in range(min(PREFETCH, n)))
         for i in range(n):
@@ -153,13 +158,18 @@ def calibrate_sequence(
     config: OdometryConfig | None = None,
     max_frames: int | None = None,
     progress: bool = True,
+    terms=None,
 ):
     """Fit the sensor terms (:func:`covo_gtsam.calibration.fit_sensor_terms`) on a sequence with
     ground truth.
 
     Runs the odometry with the per-point model alone (``config`` with ``correlation_factor = 1``
-    and zero frame sigmas, frame to frame) into ``out_dir`` and fits the consecutive pairs
-    (one frame interval) that have ground truth. Returns ``(SensorTerms, RunResult)``.
+    and every other term zero, frame to frame) into ``out_dir`` and fits the consecutive pairs
+    (one frame interval) that have ground truth, with the frame-level terms named in ``terms``
+    (:data:`~covo_gtsam.calibration.DEFAULT_TERMS` if None). Pairs the integrity check flagged are
+    left out (their data is suspect), and so are the pairs of the first frames, which the frame
+    clock has not placed yet; the prior terms (:data:`~covo_gtsam.calibration.PRIOR_TERMS`) are
+    held at ``config``'s values. Returns ``(SensorTerms, RunResult)``.
 
     Raises:
         DatasetError: the sequence has no ground truth.
@@ -167,33 +177,36 @@ def calibrate_sequence(
     """
     import dataclasses
 
-    from .calibration import fit_sensor_terms
+    from .calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS, fit_sensor_terms
     from .evaluation import ground_truth_lookup, relative_ground_truth
     from .metrics import relative_pose_tangent_errors
 
     if seq.groundtruth is None:
         raise DatasetError(f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
-    config = dataclasses.replace(config or OdometryConfig(), correlation_factor=1.0, frame_sigma_rot_deg=0.0,
-                                 frame_sigma_trans_m=0.0, timing_sigma_s=0.0, keyframes=False)
-    result = run_sequence(seq, out_dir, config=config, max_frames=max_frames, plots=False, progress=progress)
+    config = config or OdometryConfig()
+    priors = {k: getattr(config, ERROR_TERMS[k]) for k in ERROR_TERMS if k in PRIOR_TERMS}
+    no_terms = {name: 0.0 for name in ERROR_TERMS.values()}
+    config = dataclasses.replace(config, correlation_factor=1.0, frame_sigma_rot_deg=0.0,
+                                 frame_sigma_trans_m=0.0, keyframes=False, **no_terms)
+    result = run_sequence(seq, out_dir, config=config, max_frames=max_frames, plots=False, progress=progress,
+                          keep_error_bases=True)
     lookup = ground_truth_lookup(seq)
-    consecutive = [s for s in result.steps if s.status == "tracked"
-                   and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1]
-    consecutive = [s for s in consecutive if s.velocity is not None
-                   and lookup.get(s.ref_timestamp) is not None and lookup.get(s.timestamp) is not None]
+    clocked = {s.timestamp for s in result.steps if s.clock_samples or not config.frame_clock}
+    consecutive = [s for s in result.steps if s.status == "tracked" and s.velocity is not None and not s.flagged
+                   and s.timestamp in clocked and s.ref_timestamp in clocked
+                   and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1
+                   and s.ref_timestamp in lookup and s.timestamp in lookup]
     T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
+    fixed = sum(sigma**2 * B for k, B in stacked_bases(consecutive, priors).items() for sigma in [priors[k]])
     return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs,
-                            twists=pair_twists(consecutive, result.steps)), result
+                            bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),
+                            fixed=fixed if priors else None), result
 
 
-def pair_twists(pairs, steps) -> np.ndarray:
-    """Body twists (N, 2, 6) at the reference and current frame of each tracked pair in ``pairs``
-    (rad/s, m/s; the reference frame's own pair twist, or the pair's where it has none), as
-    :meth:`VisualOdometry.register_frame` uses them for the timing term."""
-    by_stamp = {s.timestamp: s for s in steps if s.tracked}
-    out = []
-    for s in pairs:
-        ref = by_stamp.get(s.ref_timestamp)
-        v_ref = s.velocity if ref is None or ref.velocity is None else ref.velocity
-        out.append(np.stack([v_ref, s.velocity]))
-    return np.array(out).reshape(-1, 2, 6)
+def stacked_bases(steps, terms=None) -> dict[str, np.ndarray]:
+    """The frame-level error bases (N, 6, 6) of ``steps`` for the terms named in ``terms`` (all of
+    :data:`~covo_gtsam.calibration.ERROR_TERMS` if None; a term a step lacks counts as zero)."""
+    from .calibration import ERROR_TERMS
+
+    names = list(ERROR_TERMS) if terms is None else list(terms)
+    return {k: np.array([s.error_bases.get(k, np.zeros((6, 6))) for s in steps]).reshape(-1, 6, 6) for k in names}

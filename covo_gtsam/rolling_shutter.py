@@ -48,17 +48,16 @@ def compensate_points(
     return X + d * (np.cross(twist[:3], X) + twist[3:])
 
 
-def compensate_pair(
-    X_ref: np.ndarray, v_ref: np.ndarray, X_cur: np.ndarray, v_cur: np.ndarray, T_ref_cur: gtsam.Pose3,
-    dt: float, height: int, readout_s: float, ref_velocity: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The points of a frame pair, each frame's moved to its image timestamp (:func:`compensate_points`).
+def frame_twists(T_ref_cur: gtsam.Pose3, dt: float, ref_velocity: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's body twist (6,) at the reference and the current frame of a pair (rad/s, m/s).
 
-    The twist at the current frame is the pair's mean twist ``Log(T_ref,cur) / dt``; at the
-    reference frame it is averaged with ``ref_velocity`` (the reference's own pair twist, a
-    central estimate) when given. ``v_ref``, ``v_cur``: the points' measured pixel rows.
+    At the current frame it is the pair's mean twist ``Log(T_ref,cur) / dt``; at the reference it
+    is averaged with ``ref_velocity`` (the reference's own pair twist, a central estimate) when
+    given. (Extrapolating the current frame's twist by half the change made the shared fr1 frames
+    less accurate; docs/consistency.md.)
     """
     twist = gtsam.Pose3.Logmap(T_ref_cur) / dt
-    twist_ref = twist if ref_velocity is None else 0.5 * (twist + np.asarray(ref_velocity, dtype=float))
-    return (compensate_points(X_ref, v_ref, twist_ref, height, readout_s),
-            compensate_points(X_cur, v_cur, twist, height, readout_s))
+    if ref_velocity is None:
+        return twist, twist
+    return 0.5 * (twist + np.asarray(ref_velocity, dtype=float)), twist

@@ -106,22 +106,27 @@ def test_timing_term_matches_monte_carlo_of_stamp_errors():
     np.testing.assert_allclose(emp, pred, atol=0.03 * np.abs(pred).max())
     # the full model adds it to kappa * C_points + frame term
     P = np.eye(6) * 1e-6
-    C = sensor_covariance(P, 2.0, 0.001, 0.002, 1, np.stack([xi, xi]), s)
+    C = sensor_covariance(P, 2.0, 0.001, 0.002, 1, {"timing": timing_covariance(np.stack([xi, xi]))}, {"timing": s})
     np.testing.assert_allclose(C, sensor_covariance(P, 2.0, 0.001, 0.002) + pred)
 
 
-def test_fit_recovers_the_timing_term():
-    """Errors drawn with a timing term (tau 3 ms) over twists of varying speed give back tau."""
+def test_fit_recovers_frame_level_terms():
+    """Errors drawn with a timing term (tau 3 ms, over twists of varying speed) and a rank-one
+    depth-scale term (0.2 %) give back both sigmas and kappa."""
     from covo_gtsam.calibration import timing_covariance
 
     rng = np.random.default_rng(6)
     n = 2000
     P = _random_spd(rng, n) * rng.uniform(0.2, 3.0, size=(n, 1, 1)) * 0.02
     twists = rng.normal(size=(n, 2, 6)) * np.array([1.0] * 3 + [0.3] * 3)
-    C = sensor_covariance(P, 2.0, np.deg2rad(0.1), 0.0005) + timing_covariance(twists, 0.003)
+    b = rng.normal(size=(n, 6)) * np.array([0.1] * 3 + [2.0] * 3)  # rad, m per unit scale error
+    bases = {"timing": timing_covariance(twists), "depth_scale": np.einsum("ni,nj->nij", b, b)}
+    C = sensor_covariance(P, 2.0, np.deg2rad(0.1), 0.0005, 1, bases, {"timing": 0.003, "depth_scale": 0.002})
     e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=(n, 6)))
-    fit = fit_sensor_terms(e, P, twists=twists)
-    assert fit.timing_sigma_s == pytest.approx(0.003, rel=0.1)
+    fit = fit_sensor_terms(e, P, bases=bases)
+    assert fit.sigmas["timing"] == pytest.approx(0.003, rel=0.1)
+    assert fit.sigmas["depth_scale"] == pytest.approx(0.002, rel=0.1)
     assert fit.correlation_factor == pytest.approx(2.0, rel=0.15)
-    with pytest.raises(InputError, match="twists"):
-        fit_sensor_terms(e, P, twists=twists[:5])
+    assert fit.config_values()["timing_sigma_s"] == fit.sigmas["timing"]
+    with pytest.raises(InputError, match="basis 'timing'"):
+        fit_sensor_terms(e, P, bases={"timing": bases["timing"][:5]})

@@ -155,6 +155,7 @@ class TumSequence:
 
     Attributes: ``path`` (absolute), ``name`` (folder name), ``camera_name`` (``"fr1"``/``"fr2"``/
     ``"fr3"`` from the folder name, or None), ``timestamps`` (colour stamps of the frames, s, (K,)),
+    ``depth_timestamps`` (the stamps of their depth images, s, (K,)),
     ``rgb_paths`` / ``depth_paths`` (absolute paths), ``groundtruth`` (T_world,cam (K, 4, 4) at the
     frame stamps, or None without ``groundtruth.txt``), ``gt_valid`` (K,) bool and
     ``missing_files`` (listed image files that do not exist; their frames are reported lost when read).
@@ -183,6 +184,7 @@ class TumSequence:
                 f"depth stamp of depth.txt ({len(dep_t)} lines) within {max_dt} s"
             )
         self.timestamps = np.array([rgb_t[i] for i, _ in pairs], dtype=float)
+        self.depth_timestamps = np.array([dep_t[j] for _, j in pairs], dtype=float)
         self.rgb_paths = [str(self.path / rgb_n[i]) for i, _ in pairs]
         self.depth_paths = [str(self.path / dep_n[j]) for _, j in pairs]
         # A listed file that is missing makes its frame lost when it is read (the run goes on);
@@ -243,6 +245,7 @@ class TumSequence:
             raise ConfigError(f"frames need 0 <= start < stop <= {len(self)}, got {start!r}, {stop!r}")
         part = copy.copy(self)
         part.timestamps = self.timestamps[start:stop]
+        part.depth_timestamps = self.depth_timestamps[start:stop]
         part.rgb_paths, part.depth_paths = self.rgb_paths[start:stop], self.depth_paths[start:stop]
         listed = set(part.rgb_paths) | set(part.depth_paths)
         part.missing_files = [f for f in self.missing_files if f in listed]

@@ -1,0 +1,74 @@
+"""Errors shared by all points of a frame, carried to the relative pose through the estimator.
+
+The per-point model treats the points' errors as independent; an RGB-D frame also has errors that
+move all of its points together. Each is a frame-level random variable ``z`` (a few numbers with
+a physical unit) that displaces point ``i`` by ``dX_i = A_i z``. To first order the estimate moves
+by ``dxi = sum_i G_i dX_i``, with ``G_i`` the estimator's gain (:func:`transfer_gains`), so the
+pose covariance gains ``B Sigma_z B^T`` with ``B = sum_i G_i A_i`` (6 x dim z): a covariance with
+the geometry of the pair, not an inflation of the per-point one.
+
+Terms (tangent ``[omega, v]``, right perturbation; docs/derivation.md):
+
+* depth scale: the depth image of a frame reads all depths ``1 + e`` times too long (the Kinect's
+  depth calibration drifts with temperature), ``dX_i = X_i e``: ``B = sum_i G_i X_i``;
+* colour-depth time: the depth image is taken ``offset_s`` after the colour image, so each point
+  is moved along its ray by its depth rate, ``dX_i = (X_i / Z_i) dZ_i/dt * d``: a known ``d`` is
+  compensated (:func:`depth_time_shift`); an error in it is this term;
+* rolling-shutter residual: the compensation uses the camera's twist at the frame; an error
+  ``dtwist`` moves point ``i`` (captured ``d_i`` s after the stamp) by
+  ``d_i (domega x X_i + dv) = d_i [-[X_i]x, I] dtwist``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .factors import rotate_covariances, transfer_jacobians
+from .geometry import skew
+
+
+def transfer_gains(R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray,
+                   Q_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First-order gains ``(G_ref, G_cur)`` (N, 6, 3) of the relative-pose estimate
+    ``T_ref,cur = (R, t)`` with respect to its input points (metres):
+    ``dxi = sum_i G_ref[i] dX_ref[i] + G_cur[i] dX_cur[i]`` (right perturbation ``[omega, v]``).
+
+    The estimate minimises ``sum r_i^T S_i^-1 r_i`` with ``r_i = X_ref,i - (R X_cur,i + t)`` and
+    ``S_i = Q_ref,i + R Q_cur,i R^T`` (the consistent weighting; docs/derivation.md), so
+    ``dxi = -H^-1 sum J_i^T S_i^-1 dr_i`` with ``dr_i = dX_ref,i - R dX_cur,i``.
+    """
+    J, _ = transfer_jacobians(R, t, X_ref, X_cur)
+    JtW = J.transpose(0, 2, 1) @ np.linalg.inv(Q_ref + rotate_covariances(R, Q_cur))
+    K = -np.linalg.inv((JtW @ J).sum(axis=0)) @ JtW
+    return K, K @ -R
+
+
+def depth_scale_basis(G: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``B`` (6,) of a frame's depth-scale error: ``sum_i G_i X_i`` (per unit relative scale error)."""
+    return (G @ X[:, :, None]).sum(axis=0)[:, 0]
+
+
+def depth_rates(X: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """Rate of change (N,) of the depth of static points ``X`` (N, 3) seen by a camera moving with
+    body twist ``[omega, v]`` (rad/s, m/s): the z row of ``-(omega x X + v)``, m/s."""
+    twist = np.asarray(twist, dtype=float).reshape(6)
+    return -(np.cross(twist[:3], X)[:, 2] + twist[5])
+
+
+def depth_time_shift(X: np.ndarray, twist: np.ndarray, offset_s: float) -> np.ndarray:
+    """Points (N, 3) whose depths were read ``offset_s`` s after their bearings, moved along their rays
+    to the bearings' time: ``X - (X / Z) dZ/dt offset_s``."""
+    return X - (X / X[:, 2:3]) * (depth_rates(X, twist) * offset_s)[:, None]
+
+
+def depth_time_basis(G: np.ndarray, X: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """``B`` (6,) of an error in a frame's colour-depth time offset: ``sum_i G_i (X_i/Z_i) dZ_i/dt``
+    (per second of offset error)."""
+    return (G @ ((X / X[:, 2:3]) * depth_rates(X, twist)[:, None])[:, :, None]).sum(axis=0)[:, 0]
+
+
+def rolling_shutter_basis(G: np.ndarray, X: np.ndarray, row_offsets_s: np.ndarray) -> np.ndarray:
+    """``B`` (6, 6) of an error in the twist used by the rolling-shutter compensation of a frame:
+    ``sum_i G_i d_i [-[X_i]x, I]`` (``d_i``: capture time of point i's row after the stamp, s)."""
+    Gd = G * row_offsets_s[:, None, None]
+    return np.concatenate([-(Gd @ skew(X)).sum(axis=0), Gd.sum(axis=0)], axis=1)

@@ -1,0 +1,145 @@
+"""Cross-validation of the covariance's sensor terms: writes docs/cross_validation.md.
+
+    python studies/cross_validation.py [--data ../shared/data]
+
+The odometry runs once per sequence with the per-point model alone (frame to frame, everything
+else default). The sensor terms (kappa, frame term, timing term) are fitted by maximum likelihood
+(`covo_gtsam.calibration.fit_sensor_terms`) on the consecutive pairs of one half of the shared
+fr1_rpy frames and checked on the other half and on fr1_desk, both ways round. Reported per
+check: ANEES translation / rotation, share of NEES above 9.35, largest NEES, 30-pair chains.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from covo_gtsam.calibration import fit_sensor_terms, sensor_covariance  # noqa: E402
+from covo_gtsam.covariance import compose_covariance  # noqa: E402
+from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
+from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
+from covo_gtsam.metrics import nees, relative_pose_tangent_errors  # noqa: E402
+from covo_gtsam.odometry import OdometryConfig  # noqa: E402
+from covo_gtsam.calibration import ERROR_TERMS  # noqa: E402
+from covo_gtsam.pipeline import run_sequence, stacked_bases  # noqa: E402
+
+RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
+POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
+                   **{name: 0.0 for name in ERROR_TERMS.values()})
+#: covariance models compared: the frame-level terms each fits besides kappa and the frame term
+MODELS = {"kappa + frame term": (), "+ timing": ("timing",), "+ timing, depth scale": ("timing", "depth_scale"),
+          "+ all frame-level terms": tuple(ERROR_TERMS)}
+CHAIN = 30
+
+
+def per_point_pairs(data: Path, name: str, **overrides) -> dict:
+    """Errors (N, 6), per-point covariances (N, 6, 6), frame-level error bases (name -> (N, 6, 6)),
+    end frame index (N,) and true/estimated poses of the consecutive pairs with ground truth,
+    per-point model alone."""
+    seq = TumSequence(data / "tum" / name)
+    cfg = dataclasses.replace(OdometryConfig(), **POINTS_ONLY, **overrides)
+    with tempfile.TemporaryDirectory() as tmp:
+        run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False, keep_error_bases=True)
+    lookup = ground_truth_lookup(seq)
+    pairs = [s for s in run.steps if s.status == "tracked" and s.velocity is not None
+             and cfg.frame_intervals(s.timestamp - s.ref_timestamp) == 1
+             and s.ref_timestamp in lookup and s.timestamp in lookup]
+    T_est, T_true, covs = relative_ground_truth(pairs, lookup)
+    index = {t: i for i, t in enumerate(seq.timestamps)}
+    return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "bases": stacked_bases(pairs),
+            "end": np.array([index[s.timestamp] for s in pairs]), "T_est": T_est, "T_true": T_true}
+
+
+def subset(p: dict, mask: np.ndarray) -> dict:
+    return {k: ({n: b[mask] for n, b in v.items()} if isinstance(v, dict) else v[mask]) for k, v in p.items()}
+
+
+def model_covs(fit, p: dict) -> np.ndarray:
+    return sensor_covariance(p["cov"], fit.correlation_factor, np.deg2rad(fit.frame_sigma_rot_deg),
+                             fit.frame_sigma_trans_m, 1, p["bases"], fit.sigmas)
+
+
+def chain_anees(p: dict, covs: np.ndarray, w: int = CHAIN) -> tuple[float, float]:
+    """ANEES t / r of windows of ``w`` consecutive pairs (covariances composed as independent)."""
+    import gtsam
+
+    est, true, cc = [], [], []
+    for s in range(len(p["err"]) - w + 1):
+        if p["end"][s + w - 1] - p["end"][s] != w - 1:
+            continue  # not consecutive
+        T, C, Tt = gtsam.Pose3(), np.zeros((6, 6)), np.eye(4)
+        for j in range(s, s + w):
+            Tj = gtsam.Pose3(p["T_est"][j])
+            C = compose_covariance(T, C, Tj, covs[j])
+            T, Tt = T.compose(Tj), Tt @ p["T_true"][j]
+        est.append(T.matrix()), true.append(Tt), cc.append(C)
+    if not est:
+        return float("nan"), float("nan")
+    xi, cc = relative_pose_tangent_errors(np.array(est), np.array(true)), np.array(cc)
+    return float(nees(xi[:, 3:], cc[:, 3:, 3:]).mean()), float(nees(xi[:, :3], cc[:, :3, :3]).mean())
+
+
+def check(fit, p: dict) -> str:
+    from covo_gtsam.calibration import log_likelihood
+
+    covs = model_covs(fit, p)
+    nt, nr = nees(p["err"][:, 3:], covs[:, 3:, 3:]), nees(p["err"][:, :3], covs[:, :3, :3])
+    ct, cr = chain_anees(p, covs)
+    chain = "—" if np.isnan(ct) else f"{ct:.2f} / {cr:.2f}"
+    return (f"{nt.mean():.2f} / {nr.mean():.2f} | {100 * np.mean(nt > 9.35):.0f} % / {100 * np.mean(nr > 9.35):.0f} % | "
+            f"{nt.max():.1f} / {nr.max():.1f} | {chain} | {log_likelihood(p['err'], covs):.2f}")
+
+
+UNITS = {"timing": (1e3, "ms"), "depth_scale": (1e2, "%"), "depth_time": (1.0, ""), "rolling_shutter": (1.0, "")}
+
+
+def fit_row(fit) -> str:
+    terms = "".join(f", {k} {UNITS[k][0] * v:.3g}{UNITS[k][1]}" for k, v in fit.sigmas.items())
+    return (f"kappa {fit.correlation_factor:.2f}, {fit.frame_sigma_rot_deg:.3f} deg, "
+            f"{1e3 * fit.frame_sigma_trans_m:.2f} mm{terms}; ll {fit.log_likelihood:.2f}")
+
+
+def tables(data: Path) -> list[str]:
+    lines = []
+    for label, overrides in (("default (frame clock on)", {}), ("frame clock off", {"frame_clock": False})):
+        rpy, desk = per_point_pairs(data, RPY, **overrides), per_point_pairs(data, DESK, **overrides)
+        halves = {"A: pairs ending in frames 1-119": rpy["end"] <= 119, "B: pairs ending in frames 120-239": rpy["end"] >= 120}
+        lines += [f"### {label}", "",
+                  "| fitted on | model | terms | checked on | ANEES t / r | NEES > 9.35 t / r | largest NEES t / r | "
+                  f"{CHAIN}-pair chains ANEES t / r | log-likelihood per pair |", "|---|---|---|---|---|---|---|---|---|"]
+        for fit_name, m in halves.items():
+            train = subset(rpy, m)
+            for model, names in MODELS.items():
+                fit = fit_sensor_terms(train["err"], train["cov"], bases={n: train["bases"][n] for n in names})
+                for other, mo in halves.items():
+                    if other != fit_name:
+                        lines.append(f"| {fit_name[:1]} | {model} | {fit_row(fit)} | {other[:1]} (held out) | "
+                                     f"{check(fit, subset(rpy, mo))} |")
+                lines.append(f"| {fit_name[:1]} | {model} | {fit_row(fit)} | fr1_desk (held out) | {check(fit, desk)} |")
+                lines.append(f"| {fit_name[:1]} | {model} | {fit_row(fit)} | {fit_name[:1]} (in sample) | {check(fit, train)} |")
+        lines.append("")
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "cross_validation.md")
+    args = ap.parse_args()
+    lines = ["# Cross-validation of the sensor terms", "", __doc__.split("\n\n", 2)[2].strip(), "",
+             "*Generated by `python studies/cross_validation.py`; do not edit by hand.*", ""]
+    lines += tables(args.data)
+    args.out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
