@@ -27,6 +27,7 @@ from .errors import DatasetError, InputError
 from .geometry import pose_from_tum, pose_to_tum
 
 __all__ = [
+    "FolderLock",
     "RELATIVE_HEADER",
     "TRAJECTORY_HEADER",
     "RelativePoseWriter",
@@ -248,3 +249,45 @@ def write_json(path: str | os.PathLike, obj) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+class FolderLock:
+    """Exclusive lock on a folder for the time one command writes into it (``with FolderLock(path):``).
+
+    An advisory ``flock`` on the folder itself: it leaves no file behind and is released when the
+    process ends, however it ends. A second writer gets :class:`DatasetError` at once instead of
+    interleaving its lines with the first one's. Without ``fcntl`` (Windows) there is no lock.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self._fd: int | None = None
+
+    def acquire(self) -> "FolderLock":
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not on POSIX
+            return self
+        try:
+            fd = os.open(self.path, os.O_RDONLY)
+        except OSError as exc:
+            raise DatasetError(f"{self.path}: cannot open the output folder ({exc.strerror or exc})") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise DatasetError(f"{self.path}: another covo command is writing into this output folder; "
+                               "wait for it or choose another --out") from None
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor releases the flock
+            self._fd = None
+
+    def __enter__(self) -> "FolderLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
