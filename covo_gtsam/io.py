@@ -264,6 +264,8 @@ class FolderLock:
         self._fd: int | None = None
 
     def acquire(self) -> "FolderLock":
+        if self._fd is not None:  # already held
+            return self
         try:
             import fcntl
         except ImportError:  # pragma: no cover - not on POSIX

@@ -252,4 +252,7 @@ def calibrate_sequence(
     consecutive = [s for s in result.steps if s.status == "tracked"
                    and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1]
     T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
+    if len(T_est) < 10:
+        raise InputError(f"{seq.path}: the fit needs at least 10 consecutive tracked frame pairs with usable ground "
+                         f"truth at both frames, got {len(T_est)} (of {len(consecutive)} consecutive tracked pairs)")
     return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs), result

@@ -19,6 +19,11 @@ from ..errors import ConfigError, DatasetError
 from ..geometry import make_pose, matrix_to_quat, quat_to_matrix
 from ..io import data_lines, load_tum_trajectory
 
+#: Largest ground-truth position coordinate (m) used: beyond it (far beyond any geodetic coordinate)
+#: relative poses of two frames lose all precision or overflow, so such frames count as without
+#: ground truth.
+MAX_GT_COORDINATE = 1e9
+
 __all__ = ["Frame", "TumSequence", "associate", "interpolate_poses", "read_file_list", "camera_name_from_path"]
 
 
@@ -156,7 +161,9 @@ class TumSequence:
     Attributes: ``path`` (absolute), ``name`` (folder name), ``camera_name`` (``"fr1"``/``"fr2"``/
     ``"fr3"`` from the folder name, or None), ``timestamps`` (colour stamps of the frames, s, (K,)),
     ``rgb_paths`` / ``depth_paths`` (absolute paths), ``groundtruth`` (T_world,cam (K, 4, 4) at the
-    frame stamps, or None without ``groundtruth.txt``), ``gt_valid`` (K,) bool and
+    frame stamps, or None without ``groundtruth.txt``), ``gt_valid`` (K,) bool (the frame's stamp is
+    inside the ground truth's span, between samples at most ``max_gap`` apart, and its position is
+    within :data:`MAX_GT_COORDINATE` m) and
     ``missing_files`` (listed image files that do not exist; their frames are reported lost when read).
     ``camera`` is the given camera (a :class:`~covo_gtsam.camera.Camera`, or a preset name such as
     ``"fr1"``, which must be known: :class:`ConfigError` otherwise), else the preset named by
@@ -206,6 +213,9 @@ class TumSequence:
             stamps, poses = load_tum_trajectory(gt_file)
             if stamps.size:
                 self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps, max_gap)
+                G = self.groundtruth
+                usable = np.isfinite(G).all(axis=(1, 2)) & (np.abs(G[:, :3, 3]).max(axis=1) <= MAX_GT_COORDINATE)
+                self.gt_valid &= usable
 
     @property
     def camera(self):
