@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import IO
@@ -62,13 +63,31 @@ def data_lines(path: Path):
     Raises :class:`DatasetError` naming the file when it cannot be read.
     """
     try:
-        lines = Path(path).read_text().splitlines()
+        # as editors write them: a UTF-8 byte-order mark, CRLF or CR line ends; bytes that are not
+        # UTF-8 (e.g. Latin-1 file names) are kept as the file system's surrogate escapes
+        lines = Path(path).read_text(encoding="utf-8-sig", errors="surrogateescape").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from exc
     for no, line in enumerate(lines, 1):
         s = line.strip()
         if s and not s.startswith("#"):
             yield no, s
+
+
+def file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be read as a file -- ``"does not exist"``, ``"is not a file"`` or
+    ``"cannot be read (...)"`` (e.g. a folder on the way without permission) -- or None if it can."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return "does not exist"
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if not stat.S_ISREG(st.st_mode):
+        return "is not a file"
+    if not os.access(path, os.R_OK):
+        return "cannot be read (permission denied)"
+    return None
 
 
 def _load_rows(path: str | os.PathLike, ncols: int, what: str) -> tuple[np.ndarray, np.ndarray]:

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..geometry import make_pose, matrix_to_quat, quat_to_matrix
-from ..io import data_lines, load_tum_trajectory
+from ..io import data_lines, file_problem, load_tum_trajectory
 
 #: Largest ground-truth position coordinate (m) used: beyond it (far beyond any geodetic coordinate)
 #: relative poses of two frames lose all precision or overflow, so such frames count as without
@@ -164,7 +164,8 @@ class TumSequence:
     frame stamps, or None without ``groundtruth.txt``), ``gt_valid`` (K,) bool (the frame's stamp is
     inside the ground truth's span, between samples at most ``max_gap`` apart, and its position is
     within :data:`MAX_GT_COORDINATE` m) and
-    ``missing_files`` (listed image files that do not exist; their frames are reported lost when read).
+    ``missing_files`` (listed image files that do not exist or cannot be read; their frames are
+    reported lost when read).
     ``camera`` is the given camera (a :class:`~covo_gtsam.camera.Camera`, or a preset name such as
     ``"fr1"``, which must be known: :class:`ConfigError` otherwise), else the preset named by
     ``camera_name`` (reading it raises :class:`DatasetError` when neither is known).
@@ -194,11 +195,13 @@ class TumSequence:
         self.depth_paths = [str(self.path / dep_n[j]) for _, j in pairs]
         # A listed file that is missing makes its frame lost when it is read (the run goes on);
         # when no frame has both of its images the folder itself is wrong.
-        self.missing_files = [p for pair in zip(self.rgb_paths, self.depth_paths) for p in pair if not os.path.isfile(p)]
+        problems = {p: file_problem(p) for pair in zip(self.rgb_paths, self.depth_paths) for p in pair}
+        self.missing_files = [p for p, problem in problems.items() if problem is not None]
         missing = set(self.missing_files)
         if all(rp in missing or dp in missing for rp, dp in zip(self.rgb_paths, self.depth_paths)):
+            first = self.missing_files[0]
             raise DatasetError(f"{self.path}: no frame has both its colour and its depth image "
-                               f"(e.g. {self.missing_files[0]} does not exist)")
+                               f"(e.g. {first} {problems[first]})")
         self.camera_name = camera_name_from_path(self.path)
         if isinstance(camera, str):  # a preset name
             from ..camera import Camera
