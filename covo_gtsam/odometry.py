@@ -388,7 +388,7 @@ class VisualOdometry:
                                                res.pose, dt, self.camera.height, self.config.rolling_shutter_s,
                                                ref_step.velocity)
                 res = self._solve(X_ref, X_cur, pairs, res.pose)
-        except EstimationError as exc:
+        except (EstimationError, InputError) as exc:  # InputError: e.g. points moved beyond range by compensation
             step.reason = str(exc)
             return step
         angle = float(np.rad2deg(np.linalg.norm(gtsam.Rot3.Logmap(res.pose.rotation()))))
