@@ -108,6 +108,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     m = result.metrics
     fps = m["frames_per_second"]
     line = f"{m['frames']} frames, {m['lost_frames']} lost" + (f", {fps:.1f} frames/s" if fps is not None else "")
+    if m.get("unassociated"):
+        line += f", {len(m['unassociated'])} colour frames without depth (not run)"
     if m.get("rpe_30"):
         line += f", RPE30 {m['rpe_30']['trans_rmse']:.4f} m"
     if m.get("anees_translation") is not None and m.get("anees_rotation") is not None:

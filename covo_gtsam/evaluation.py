@@ -76,6 +76,20 @@ def ground_truth_lookup(seq) -> dict[float, np.ndarray]:
     return {float(t): g for t, g, ok in zip(seq.timestamps, seq.groundtruth, seq.gt_valid) if ok}
 
 
+def _unassociated(steps: Sequence[OdometryStep], seq) -> list[dict]:
+    """The colour frames of ``rgb.txt`` within the processed frames' time span that have no depth
+    image (:attr:`TumSequence.unassociated`), each with the reason: no frame of the list is dropped
+    without a word."""
+    listed = getattr(seq, "unassociated", None) or []
+    if not steps or not listed:
+        return []
+    n = len(steps)
+    last = steps[-1].timestamp if n < len(seq) else float("inf")
+    max_dt = getattr(seq, "max_dt", 0.02)
+    return [{"timestamp": t, "file": name, "reason": f"no depth image in depth.txt within {max_dt:g} s"}
+            for t, name in listed if t <= last]
+
+
 def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
     """Frames, lost frames, speed and, with ground truth, RPE/ATE/ANEES of an odometry run.
 
@@ -90,6 +104,7 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
         "lost_frames": len(lost),
         "lost": [{"timestamp": s.timestamp, "reason": s.reason} for s in lost],
         "restarts": [{"timestamp": s.timestamp, "reason": s.reason} for s in steps if s.status == "restart"],
+        "unassociated": _unassociated(steps, seq),
         "elapsed_s": float(elapsed_s),
         "frames_per_second": float(len(steps) / elapsed_s) if elapsed_s > 0 else None,
         "mean_pairs": float(np.mean([s.num_pairs for s in steps if s.status == "tracked"] or [0])),

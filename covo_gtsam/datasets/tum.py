@@ -164,6 +164,8 @@ class TumSequence:
     frame stamps, or None without ``groundtruth.txt``), ``gt_valid`` (K,) bool (the frame's stamp is
     inside the ground truth's span, between samples at most ``max_gap`` apart, and its position is
     within :data:`MAX_GT_COORDINATE` m) and
+    ``unassociated`` (``(timestamp, file name)`` of the colour frames of ``rgb.txt`` without a
+    depth image within ``max_dt``; they are no frames of the sequence) and
     ``missing_files`` (listed image files that do not exist or cannot be read; their frames are
     reported lost when read).
     ``camera`` is the given camera (a :class:`~covo_gtsam.camera.Camera`, or a preset name such as
@@ -190,6 +192,10 @@ class TumSequence:
                 f"{self.path}: no frame could be associated: no colour stamp of rgb.txt ({len(rgb_t)} lines) has a "
                 f"depth stamp of depth.txt ({len(dep_t)} lines) within {max_dt} s"
             )
+        used = {i for i, _ in pairs}
+        #: colour frames of rgb.txt without a depth image within max_dt: (timestamp, file name)
+        self.unassociated = sorted((float(rgb_t[i]), rgb_n[i]) for i in range(len(rgb_t)) if i not in used)
+        self.max_dt = max_dt
         self.timestamps = np.array([rgb_t[i] for i, _ in pairs], dtype=float)
         self.rgb_paths = [str(self.path / rgb_n[i]) for i, _ in pairs]
         self.depth_paths = [str(self.path / dep_n[j]) for _, j in pairs]
@@ -259,6 +265,8 @@ class TumSequence:
         part.rgb_paths, part.depth_paths = self.rgb_paths[start:stop], self.depth_paths[start:stop]
         listed = set(part.rgb_paths) | set(part.depth_paths)
         part.missing_files = [f for f in self.missing_files if f in listed]
+        lo, hi = part.timestamps[0], part.timestamps[-1]
+        part.unassociated = [u for u in self.unassociated if (start == 0 or u[0] >= lo) and (stop == len(self) or u[0] <= hi)]
         part.gt_valid = self.gt_valid[start:stop]
         part.groundtruth = None if self.groundtruth is None else self.groundtruth[start:stop]
         return part
