@@ -18,7 +18,8 @@ from covo_gtsam.cli import main
 from covo_gtsam.errors import InputError
 from covo_gtsam.frontend import load_depth, load_grey
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
-from covo_gtsam.odometry import MAX_GAP_S, OdometryConfig, VisualOdometry
+from covo_gtsam import odometry
+from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
 #: metrics of covo run that are None exactly when not_computed names them
 GT_METRICS = {"rpe_1": "rpe_1", "rpe_30": "rpe_30", "ate": "ate", "anees_translation": "anees"}
@@ -86,7 +87,7 @@ def test_huge_last_timestamp_is_a_lost_frame(small_sample, tmp_path, capsys, sta
     m = check_outputs(out)
     assert m["tracked_frames"] == 3 and m["lost_frames"] == 1
     assert m["lost"][0]["timestamp"] == float(stamp)
-    assert f"more than {MAX_GAP_S:g} s" in m["lost"][0]["reason"]
+    assert "s after its reference frame" in m["lost"][0]["reason"]
     assert len(load_relative_poses(out / "relative.txt")[0]) == 2
 
 
@@ -106,6 +107,7 @@ def test_register_frame_after_a_huge_gap_is_lost(sample_dir):
 
 
 def test_frame_intervals_refuses_a_gap_no_recording_has():
+    MAX_GAP_S = odometry.MAX_GAP_S
     cfg = OdometryConfig()
     assert cfg.frame_intervals(MAX_GAP_S) == round(MAX_GAP_S / cfg.frame_interval_s)
     assert np.all(np.isfinite(cfg.frame_noise(MAX_GAP_S)))
