@@ -1,7 +1,8 @@
 """Command line: ``covo run``, ``covo simulate``, ``covo analyze-noise``, ``covo calibrate``.
 
 Every failure the package knows about ends with exit code 2 and one line on stderr naming the
-file and the problem; no traceback.
+file and the problem; no traceback. ``covo run`` that tracks no frame at all ends with exit code 3
+(its results are written); Ctrl-C ends any command with 130.
 """
 
 from __future__ import annotations
