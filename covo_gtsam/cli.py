@@ -64,7 +64,7 @@ def load_config_file(path: str):
     p = Path(path)
     is_toml = p.suffix.lower() == ".toml"
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")  # a byte-order mark, as some editors write, is dropped
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
     except UnicodeDecodeError as exc:

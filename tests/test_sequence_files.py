@@ -82,3 +82,12 @@ def test_colour_frame_without_depth_is_accounted_for(small_sample, tmp_path, cap
     rgb_second = (seq / "rgb.txt").read_text().splitlines()[1].split()
     assert [u["file"] for u in m["unassociated"]] == [rgb_second[1]]
     assert "no depth image" in m["unassociated"][0]["reason"]
+
+
+@pytest.mark.parametrize("suffix, text", [(".json", '{"pixel_sigma": 3.0}'), (".toml", "pixel_sigma = 3.0")])
+def test_configuration_file_with_a_byte_order_mark(tmp_path, suffix, text):
+    from covo_gtsam.cli import load_config_file
+
+    path = tmp_path / f"config{suffix}"
+    path.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode("utf-8"))
+    assert load_config_file(str(path)).pixel_sigma == 3.0
