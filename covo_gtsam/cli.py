@@ -196,7 +196,8 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
     seq = _sequence(args)
     out = check_output_dir(args.out)
     with _lock_outputs(out, ["noise.json"], ("plots", ("noise.png",)), not args.no_plots):
-        summary = analyze_sequence(seq, pixel_sigma=args.pixel_sigma, max_frames=args.max_frames, progress=not args.quiet)
+        summary = analyze_sequence(seq, pixel_sigma=args.pixel_sigma, max_frames=args.max_frames,
+                                   progress=not args.quiet)
         if not args.no_plots:
             if plot_noise(summary, out / "plots") is None:
                 _plots_missing()
@@ -204,7 +205,8 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
         write_json(out / "noise.json", summary)
         pe, dz = summary["pixel_error"], summary["depth_residual_normalised"]
         print(f"{summary['frame_pairs']} frame pairs, {summary['points']} inlier points: pixel error std "
-              f"u {pe['std_u']:.2f} v {pe['std_v']:.2f} px (robust {pe['robust_sigma_u']:.2f} / {pe['robust_sigma_v']:.2f}), "
+              f"u {pe['std_u']:.2f} v {pe['std_v']:.2f} px "
+              f"(robust {pe['robust_sigma_u']:.2f} / {pe['robust_sigma_v']:.2f}), "
               f"{100 * pe['share_above_10px']:.1f} % above 10 px; normalised depth residual std {dz['std']:.2f} "
               f"(robust {dz['robust_sigma']:.2f}, 1 = model right)")
         print(f"results in {out}")
@@ -229,11 +231,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         summary = {"sequence": seq.name, "pairs": fit.pairs, "correlation_factor": fit.correlation_factor,
                    "frame_sigma_rot_deg": fit.frame_sigma_rot_deg, "frame_sigma_trans_m": fit.frame_sigma_trans_m,
                    "log_likelihood_per_pair": fit.log_likelihood,
-                   "per_point_model_anees": [result.metrics.get("anees_translation"), result.metrics.get("anees_rotation")]}
+                   "per_point_model_anees": [result.metrics.get("anees_translation"),
+                                             result.metrics.get("anees_rotation")]}
         write_json(out / "calibration.json", summary)
         anees_t, anees_r = summary["per_point_model_anees"]
-        anees = (f"ANEES t {anees_t:.2f} r {anees_r:.2f} (3 = consistent)" if anees_t is not None and anees_r is not None
-                 else "no ANEES (see per_point_run/metrics.json)")
+        anees = (f"ANEES t {anees_t:.2f} r {anees_r:.2f} (3 = consistent)"
+                 if anees_t is not None and anees_r is not None else "no ANEES (see per_point_run/metrics.json)")
         print(f"{fit.pairs} consecutive pairs with ground truth; the per-point model alone gives {anees}")
         print("maximum-likelihood sensor terms (configuration lines):")
         print(f"correlation_factor = {fit.correlation_factor:.3g}")

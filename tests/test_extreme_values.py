@@ -233,7 +233,8 @@ def test_run_never_writes_nan_or_inf(fuzz_base, tmp_path, capsys, start, steps, 
     cfg = tmp_path / "config.json"
     cfg.write_text(json.dumps(config))
     out = tmp_path / "out"
-    code = main(["run", str(base), "--out", str(out), "--quiet", "--config", str(cfg)] + ([] if plots else ["--no-plots"]))
+    code = main(["run", str(base), "--out", str(out), "--quiet", "--config", str(cfg)]
+                + ([] if plots else ["--no-plots"]))
     captured = capsys.readouterr()
     assert code in (0, 3), captured.err
     m = check_outputs(out)

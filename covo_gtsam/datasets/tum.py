@@ -266,7 +266,8 @@ class TumSequence:
         listed = set(part.rgb_paths) | set(part.depth_paths)
         part.missing_files = [f for f in self.missing_files if f in listed]
         lo, hi = part.timestamps[0], part.timestamps[-1]
-        part.unassociated = [u for u in self.unassociated if (start == 0 or u[0] >= lo) and (stop == len(self) or u[0] <= hi)]
+        part.unassociated = [u for u in self.unassociated
+                             if (start == 0 or u[0] >= lo) and (stop == len(self) or u[0] <= hi)]
         part.gt_valid = self.gt_valid[start:stop]
         part.groundtruth = None if self.groundtruth is None else self.groundtruth[start:stop]
         return part
