@@ -1,7 +1,8 @@
 """Command line: ``covo run``, ``covo simulate``, ``covo analyze-noise``, ``covo calibrate``.
 
 Every failure the package knows about ends with exit code 2 and one line on stderr naming the
-file and the problem; no traceback.
+file and the problem; no traceback. ``covo run`` that tracks no frame at all ends with exit code 3
+(its results are written); Ctrl-C ends any command with 130.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def load_config_file(path: str):
     p = Path(path)
     is_toml = p.suffix.lower() == ".toml"
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")  # a byte-order mark, as some editors write, is dropped
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
     except UnicodeDecodeError as exc:
@@ -87,6 +88,10 @@ def load_config_file(path: str):
         raise ConfigError(f"{p}: {exc}") from exc
 
 
+#: Exit code of ``covo run`` when no frame could be tracked (the results folder is still written).
+EXIT_NOTHING_TRACKED = 3
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .pipeline import check_output_dir, run_sequence
 
@@ -97,20 +102,28 @@ def cmd_run(args: argparse.Namespace) -> int:
         config = _replace(config, scale=args.scale)
     seq = _sequence(args)
     _check_config_fits(args, config, seq)
-    check_output_dir(Path(args.out))
+    check_output_dir(args.out)
     result = run_sequence(
         seq, args.out, config=config, max_frames=args.max_frames, plots=not args.no_plots, progress=not args.quiet
     )
     m = result.metrics
-    line = f"{m['frames']} frames, {m['lost_frames']} lost, {m['frames_per_second']:.1f} frames/s"
+    fps = m["frames_per_second"]
+    line = f"{m['frames']} frames, {m['lost_frames']} lost" + (f", {fps:.1f} frames/s" if fps is not None else "")
+    if m.get("unassociated"):
+        line += f", {len(m['unassociated'])} colour frames without depth (not run)"
     if m.get("rpe_30"):
         line += f", RPE30 {m['rpe_30']['trans_rmse']:.4f} m"
-    if "anees_translation" in m:
+    if m.get("anees_translation") is not None and m.get("anees_rotation") is not None:
         line += f", ANEES t {m['anees_translation']:.2f} r {m['anees_rotation']:.2f}"
     print(line)
     if result.plot_files is None:
         _plots_missing()
     print(f"results in {result.out_dir}")
+    if m["tracked_frames"] == 0:
+        first = m["lost"][0]["reason"] if m["lost"] else "no frame"
+        print(f"covo: error: no frame could be tracked: all {m['frames']} frames are lost (first reason: {first}); "
+              f"see metrics.json", file=sys.stderr)
+        return EXIT_NOTHING_TRACKED
     return 0
 
 
@@ -146,30 +159,32 @@ def _replace(config, **kw):
 def cmd_simulate(args: argparse.Namespace) -> int:
     from .io import write_json
     from .pipeline import check_output_dir
+    from .plots import SIMULATION_PLOTS
     from .simulation import SimulationConfig, run_simulation
 
     if not args.min_depth < args.max_depth:
         raise ConfigError(f"--min-depth ({args.min_depth:g} m) must be smaller than --max-depth ({args.max_depth:g} m)")
-    out = check_output_dir(Path(args.out))
-    cfg = SimulationConfig(
-        runs=args.runs, seed=args.seed, weighting=args.weighting, scale=args.scale,
-        pixel_sigma=args.pixel_sigma, num_points=args.points,
-        depth_range=(args.min_depth, args.max_depth),
-    )
-    result = run_simulation(cfg, progress=not args.quiet)
-    summary = result.summary()
-    write_json(out / "metrics.json", summary)
-    if not args.no_plots:
-        from .plots import plot_simulation
+    out = check_output_dir(args.out)
+    with _lock_outputs(out, ["metrics.json"], ("plots", SIMULATION_PLOTS), not args.no_plots):
+        cfg = SimulationConfig(
+            runs=args.runs, seed=args.seed, weighting=args.weighting, scale=args.scale,
+            pixel_sigma=args.pixel_sigma, num_points=args.points,
+            depth_range=(args.min_depth, args.max_depth),
+        )
+        result = run_simulation(cfg, progress=not args.quiet)
+        summary = result.summary()
+        write_json(out / "metrics.json", summary)
+        if not args.no_plots:
+            from .plots import plot_simulation
 
-        if plot_simulation(result, out / "plots") is None:
-            _plots_missing()
-    print(
-        f"{cfg.runs} runs, {cfg.weighting} weighting, scale {cfg.scale:g}, {cfg.pixel_sigma:g} px: "
-        f"ANEES translation {summary['anees_translation']:.2f}, rotation {summary['anees_rotation']:.2f} "
-        f"(consistent: about 3)"
-    )
-    print(f"results in {out}")
+            if plot_simulation(result, out / "plots") is None:
+                _plots_missing()
+        print(
+            f"{cfg.runs} runs, {cfg.weighting} weighting, scale {cfg.scale:g}, {cfg.pixel_sigma:g} px: "
+            f"ANEES translation {summary['anees_translation']:.2f}, rotation {summary['anees_rotation']:.2f} "
+            f"(consistent: about 3)"
+        )
+        print(f"results in {out}")
     return 0
 
 
@@ -179,19 +194,22 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
     from .pipeline import check_output_dir
 
     seq = _sequence(args)
-    out = check_output_dir(Path(args.out))
-    summary = analyze_sequence(seq, pixel_sigma=args.pixel_sigma, max_frames=args.max_frames, progress=not args.quiet)
-    if not args.no_plots:
-        if plot_noise(summary, out / "plots") is None:
-            _plots_missing()
-    summary.pop("_samples")
-    write_json(out / "noise.json", summary)
-    pe, dz = summary["pixel_error"], summary["depth_residual_normalised"]
-    print(f"{summary['frame_pairs']} frame pairs, {summary['points']} inlier points: pixel error std "
-          f"u {pe['std_u']:.2f} v {pe['std_v']:.2f} px (robust {pe['robust_sigma_u']:.2f} / {pe['robust_sigma_v']:.2f}), "
-          f"{100 * pe['share_above_10px']:.1f} % above 10 px; normalised depth residual std {dz['std']:.2f} "
-          f"(robust {dz['robust_sigma']:.2f}, 1 = model right)")
-    print(f"results in {out}")
+    out = check_output_dir(args.out)
+    with _lock_outputs(out, ["noise.json"], ("plots", ("noise.png",)), not args.no_plots):
+        summary = analyze_sequence(seq, pixel_sigma=args.pixel_sigma, max_frames=args.max_frames,
+                                   progress=not args.quiet)
+        if not args.no_plots:
+            if plot_noise(summary, out / "plots") is None:
+                _plots_missing()
+        summary.pop("_samples")
+        write_json(out / "noise.json", summary)
+        pe, dz = summary["pixel_error"], summary["depth_residual_normalised"]
+        print(f"{summary['frame_pairs']} frame pairs, {summary['points']} inlier points: pixel error std "
+              f"u {pe['std_u']:.2f} v {pe['std_v']:.2f} px "
+              f"(robust {pe['robust_sigma_u']:.2f} / {pe['robust_sigma_v']:.2f}), "
+              f"{100 * pe['share_above_10px']:.1f} % above 10 px; normalised depth residual std {dz['std']:.2f} "
+              f"(robust {dz['robust_sigma']:.2f}, 1 = model right)")
+        print(f"results in {out}")
     return 0
 
 
@@ -206,20 +224,39 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     config = _load_config(args)
     seq = _sequence(args)
     _check_config_fits(args, config, seq)
-    out = check_output_dir(Path(args.out))
-    fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
-                                     progress=not args.quiet)
-    summary = {"sequence": seq.name, "pairs": fit.pairs, **fit.config_values(),
-               "log_likelihood_per_pair": fit.log_likelihood,
-               "per_point_model_anees": [result.metrics.get("anees_translation"), result.metrics.get("anees_rotation")]}
-    write_json(out / "calibration.json", summary)
-    print(f"{fit.pairs} consecutive pairs with ground truth; the per-point model alone gives ANEES t "
-          f"{summary['per_point_model_anees'][0]:.2f} r {summary['per_point_model_anees'][1]:.2f} (3 = consistent)")
-    print("maximum-likelihood sensor terms (configuration lines):")
-    for name, value in fit.config_values().items():
-        print(f"{name} = {value:.3g}")
-    print(f"results in {out}")
+    out = check_output_dir(args.out)
+    with _lock_outputs(out, ["calibration.json"]):
+        fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
+                                         progress=not args.quiet)
+        summary = {"sequence": seq.name, "pairs": fit.pairs, **fit.config_values(),
+                   "log_likelihood_per_pair": fit.log_likelihood,
+                   "per_point_model_anees": [result.metrics.get("anees_translation"),
+                                             result.metrics.get("anees_rotation")]}
+        write_json(out / "calibration.json", summary)
+        anees_t, anees_r = summary["per_point_model_anees"]
+        anees = (f"ANEES t {anees_t:.2f} r {anees_r:.2f} (3 = consistent)"
+                 if anees_t is not None and anees_r is not None else "no ANEES (see per_point_run/metrics.json)")
+        print(f"{fit.pairs} consecutive pairs with ground truth; the per-point model alone gives {anees}")
+        print("maximum-likelihood sensor terms (configuration lines):")
+        for name, value in fit.config_values().items():
+            print(f"{name} = {value:.3g}")
+        print(f"results in {out}")
     return 0
+
+
+def _lock_outputs(out: Path, files: list[str], figures: tuple | None = None, write_figures: bool = True):
+    """Lock ``out`` for this command (a :class:`FolderLock`, held; use it in a ``with`` block), check
+    what it will write and remove earlier results of those names."""
+    from .io import FolderLock
+    from .pipeline import prepare_outputs
+
+    lock = FolderLock(out).acquire()
+    try:
+        prepare_outputs(out, files, figures, write_figures)
+    except BaseException:
+        lock.release()
+        raise
+    return lock
 
 
 def _plots_missing() -> None:
@@ -352,16 +389,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run one command; the exit code: 0 done, 2 unusable input (one line on stderr), 3 ``covo run``
+    tracked no frame, 130 interrupted (Ctrl-C)."""
     try:
+        parser = build_parser()  # imports GTSAM: Ctrl-C may arrive here
+        args = parser.parse_args(argv)
         return args.func(args)
     except CovoError as exc:
         print(f"covo: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("covo: interrupted; files written so far are valid", file=sys.stderr)
-        return 130
+        return _interrupted()
+    except ImportError as exc:
+        # Ctrl-C while an extension module initialises surfaces as an ImportError
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
+            return _interrupted()
+        raise
+
+
+def _interrupted() -> int:
+    print("covo: interrupted; files written so far are valid (an interrupted run has no metrics.json)",
+          file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -48,11 +48,12 @@ class FrameClock:
         fitted clock (s; positive: stamped after the clock's tick); None while the fit is not
         ready and when the stamps follow no regular clock (offsets beyond a quarter period)."""
         if self._t:
-            step = round((timestamp - self._t[-1]) / (self.period_s or self.nominal))
-            if step > 1000:  # a gap far beyond the window: start over
+            steps = (timestamp - self._t[-1]) / (self.period_s or self.nominal)
+            if not 0 <= steps <= 1000:  # a gap far beyond the window (or none to count): start over
                 self._k.clear()
                 self._t.clear()
-            self._count += max(step, 0)
+            else:
+                self._count += round(steps)
         self._k.append(self._count)
         self._t.append(float(timestamp))
         self.samples = 0

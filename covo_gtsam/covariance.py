@@ -16,6 +16,9 @@ columns ``omega, v``). ``G`` is invertible while ``qw > 0`` (rotation below 180 
 ROS ``PoseWithCovariance`` orders ``[x y z rot_x rot_y rot_z]`` with the perturbation in the
 parent frame (left: ``T_true = Exp(xi') * T_est``); ``xi'_(rot, trans) = Ad(T) xi`` in GTSAM's
 order, so ``Sigma_ros = P Ad(T) Sigma Ad(T)^T P^T`` with ``P`` swapping the two 3-blocks.
+
+Every function takes 6x6 finite matrices and ``gtsam.Pose3`` poses and raises
+:class:`~covo_gtsam.errors.InputError` for anything else (no NaN out of NaN in).
 """
 
 from __future__ import annotations
@@ -23,14 +26,49 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from .errors import InputError
 from .geometry import matrix_to_quat, skew
 
 _SWAP = np.block([[np.zeros((3, 3)), np.eye(3)], [np.eye(3), np.zeros((3, 3))]])
 
 
+def check_matrix(cov, name: str = "covariance", size: int = 6) -> np.ndarray:
+    """``cov`` as a finite float (size, size) array; :class:`InputError` otherwise."""
+    try:
+        a = np.asarray(cov, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a {size}x{size} numeric matrix, got {cov!r}") from None
+    if a.shape != (size, size):
+        raise InputError(f"{name} must be {size}x{size}, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{name} contains NaN or inf")
+    return a
+
+
+def check_covariance(cov, name: str = "covariance", size: int = 6) -> np.ndarray:
+    """``cov`` as a valid covariance: finite, (size, size), symmetric (to 1e-9 of its largest entry)
+    and positive definite (a Cholesky factor exists); :class:`InputError` naming the defect otherwise."""
+    a = check_matrix(cov, name, size)
+    asym = float(np.abs(a - a.T).max())
+    if asym > 1e-9 * max(float(np.abs(a).max()), 1e-300):
+        raise InputError(f"{name} is not symmetric (max asymmetry {asym:.3g})")
+    try:
+        np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        eig = np.linalg.eigvalsh(0.5 * (a + a.T))
+        raise InputError(f"{name} is not positive definite (smallest eigenvalue {eig[0]:.3g})") from None
+    return a
+
+
+def _check_pose(pose) -> gtsam.Pose3:
+    if not isinstance(pose, gtsam.Pose3):
+        raise InputError(f"pose must be a gtsam.Pose3, got {type(pose).__name__}")
+    return pose
+
+
 def tq_jacobian(pose: gtsam.Pose3) -> np.ndarray:
     """``G = d(t, q_v) / d(omega, v)`` (6x6) at ``pose`` for the right perturbation."""
-    R = pose.rotation().matrix()
+    R = _check_pose(pose).rotation().matrix()
     q = matrix_to_quat(R)
     qv, qw = q[:3], q[3]
     G = np.zeros((6, 6))
@@ -41,25 +79,32 @@ def tq_jacobian(pose: gtsam.Pose3) -> np.ndarray:
 
 def tangent_to_tq(cov: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
     """Thesis ``Q_tq`` (order ``tx ty tz qx qy qz``) from a GTSAM tangent covariance."""
+    cov = check_matrix(cov)
     G = tq_jacobian(pose)
     return G @ cov @ G.T
 
 
 def tq_to_tangent(cov_tq: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
     """GTSAM tangent covariance from a thesis ``Q_tq``; inverse of :func:`tangent_to_tq`."""
-    Gi = np.linalg.inv(tq_jacobian(pose))
+    cov_tq = check_matrix(cov_tq, "cov_tq")
+    G = tq_jacobian(pose)
+    if not abs(np.linalg.det(G)) > 1e-12:
+        raise InputError("the (t, q_v) parameterisation is singular at a rotation of 180 degrees (qw = 0)")
+    Gi = np.linalg.inv(G)
     return Gi @ cov_tq @ Gi.T
 
 
 def tangent_to_ros(cov: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
     """ROS ``PoseWithCovariance`` covariance ``[x y z rot_x rot_y rot_z]`` in the parent frame."""
-    A = _SWAP @ pose.AdjointMap()
+    cov = check_matrix(cov)
+    A = _SWAP @ _check_pose(pose).AdjointMap()
     return A @ cov @ A.T
 
 
 def ros_to_tangent(cov_ros: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
     """GTSAM tangent covariance from a ROS ``PoseWithCovariance`` covariance; inverse of the above."""
-    A = np.linalg.inv(_SWAP @ pose.AdjointMap())
+    cov_ros = check_matrix(cov_ros, "cov_ros")
+    A = np.linalg.inv(_SWAP @ _check_pose(pose).AdjointMap())
     return A @ cov_ros @ A.T
 
 
@@ -68,5 +113,7 @@ def compose_covariance(T_a: gtsam.Pose3, cov_a: np.ndarray, T_b: gtsam.Pose3, co
 
     ``T_a Exp(a) T_b Exp(b) = T_a T_b Exp(Ad(T_b^-1) a + b)``.
     """
-    A = T_b.inverse().AdjointMap()
+    cov_a, cov_b = check_matrix(cov_a, "cov_a"), check_matrix(cov_b, "cov_b")
+    _check_pose(T_a)
+    A = _check_pose(T_b).inverse().AdjointMap()
     return A @ cov_a @ A.T + cov_b

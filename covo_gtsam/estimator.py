@@ -32,7 +32,7 @@ from .factors import (
     whitening,
 )
 from .geometry import rotation_angle
-from .validation import is_real
+from .validation import is_int, is_real
 
 #: Key of the relative pose in the estimator's graph.
 POSE_KEY = gtsam.symbol("T", 0)
@@ -251,8 +251,8 @@ def estimate_relative_pose(
         scale: phi, multiplies the returned covariance (thesis uses 16; default 1).
         initial: initial guess of T_k,k1, a ``gtsam.Pose3`` or a 4x4 homogeneous matrix; a
             weighted closed-form rigid fit if None.
-        max_iterations: Levenberg-Marquardt iterations per pass.
-        max_reweights: passes of the ``consistent`` weighting, each re-evaluating the residual
+        max_iterations: Levenberg-Marquardt iterations per pass (an integer >= 1).
+        max_reweights: (an integer >= 1) passes of the ``consistent`` weighting, each re-evaluating the residual
             covariances at the latest rotation until it changes by less than ``reweight_tol`` rad.
         robust: ``None``, ``"huber"`` or ``"cauchy"``: iteratively re-weighted least squares with
             per-pair weights ``w(d)`` of the pair's Mahalanobis distance ``d`` (3 dof) and threshold
@@ -263,7 +263,9 @@ def estimate_relative_pose(
 
     Raises:
         InputError: wrong shapes, NaN/inf, non-symmetric or non-positive-definite covariances, an
-            ``initial`` that is not a finite rigid transform.
+            ``initial`` that is not a finite rigid transform, an unknown ``weighting`` or
+            ``robust``, iteration counts that are not integers >= 1, ``reweight_tol`` or
+            ``robust_k`` not positive and finite, ``variance_factor`` not a bool.
         InsufficientPairsError: fewer than 3 pairs.
         DegenerateGeometryError: the pairs do not constrain all 6 degrees of freedom.
         CovarianceError: GTSAM could not compute a valid marginal covariance.
@@ -272,6 +274,16 @@ def estimate_relative_pose(
         raise InputError(f"unknown weighting {weighting!r}; choose one of {WEIGHTINGS}")
     if not (is_real(scale) and np.isfinite(scale) and scale > 0):
         raise InputError(f"scale must be a positive finite number, got {scale!r}")
+    for name, value in (("max_iterations", max_iterations), ("max_reweights", max_reweights)):
+        if not (is_int(value) and value >= 1):
+            raise InputError(f"{name} must be an integer >= 1, got {value!r}")
+    for name, value in (("reweight_tol", reweight_tol), ("robust_k", robust_k)):
+        if not (is_real(value) and np.isfinite(value) and value > 0):
+            raise InputError(f"{name} must be a positive finite number, got {value!r}")
+    if not isinstance(variance_factor, (bool, np.bool_)):
+        raise InputError(f"variance_factor must be True or False, got {variance_factor!r}")
+    if robust not in ROBUST_KERNELS:
+        raise InputError(f"unknown robust kernel {robust!r}; choose one of {ROBUST_KERNELS}")
     X_k, X_k1, Q_k, Q_k1 = validate_inputs(X_k, X_k1, Q_k, Q_k1)
     n = X_k.shape[0]
     if n < 3:
@@ -287,8 +299,6 @@ def estimate_relative_pose(
     else:
         pose = as_pose3(initial, "initial")
 
-    if robust not in ROBUST_KERNELS:
-        raise InputError(f"unknown robust kernel {robust!r}; choose one of {ROBUST_KERNELS}")
     iterations = 0
     passes = max_reweights if (weighting == "consistent" or robust) else 1
     if robust:

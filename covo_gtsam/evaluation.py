@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
 
+from .datasets.tum import MAX_GT_COORDINATE
+from .errors import InputError
 from .geometry import invert_pose
 from .metrics import ate_errors, ate_statistics, chi2_quantile, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .odometry import OdometryStep
@@ -73,8 +76,26 @@ def ground_truth_lookup(seq) -> dict[float, np.ndarray]:
     return {float(t): g for t, g, ok in zip(seq.timestamps, seq.groundtruth, seq.gt_valid) if ok}
 
 
+def _unassociated(steps: Sequence[OdometryStep], seq) -> list[dict]:
+    """The colour frames of ``rgb.txt`` within the processed frames' time span that have no depth
+    image (:attr:`TumSequence.unassociated`), each with the reason: no frame of the list is dropped
+    without a word."""
+    listed = getattr(seq, "unassociated", None) or []
+    if not steps or not listed:
+        return []
+    n = len(steps)
+    last = steps[-1].timestamp if n < len(seq) else float("inf")
+    max_dt = getattr(seq, "max_dt", 0.02)
+    return [{"timestamp": t, "file": name, "reason": f"no depth image in depth.txt within {max_dt:g} s"}
+            for t, name in listed if t <= last]
+
+
 def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
-    """Frames, lost frames, speed and, with ground truth, RPE/ATE/ANEES of an odometry run."""
+    """Frames, lost frames, speed and, with ground truth, RPE/ATE/ANEES of an odometry run.
+
+    With ground truth, a metric that cannot be computed (too few frames with ground truth, values
+    beyond double precision) is None and ``not_computed[name]`` gives the reason (``"anees"`` for
+    the consistency keys); the values are never NaN or inf."""
     lost = [s for s in steps if not s.tracked]
     metrics: dict = {
         "sequence": getattr(seq, "name", ""),
@@ -83,6 +104,7 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
         "lost_frames": len(lost),
         "lost": [{"timestamp": s.timestamp, "reason": s.reason} for s in lost],
         "restarts": [{"timestamp": s.timestamp, "reason": s.reason} for s in steps if s.status == "restart"],
+        "unassociated": _unassociated(steps, seq),
         "elapsed_s": float(elapsed_s),
         "frames_per_second": float(len(steps) / elapsed_s) if elapsed_s > 0 else None,
         "mean_pairs": float(np.mean([s.num_pairs for s in steps if s.status == "tracked"] or [0])),
@@ -90,19 +112,50 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
         "flagged": [{"timestamp": s.timestamp, "ref_timestamp": s.ref_timestamp, "quality": s.quality}
                     for s in steps if s.status == "tracked" and s.flagged],
     }
-    gt = ground_truth_lookup(seq)
-    if not gt:
+    if getattr(seq, "groundtruth", None) is None:
         return metrics
+    # a metric that cannot be computed is None, and "not_computed" says why
+    not_computed: dict[str, str] = {}
+    metrics["not_computed"] = not_computed
+    gt = ground_truth_lookup(seq)
     segments = tracked_segments(steps, gt)
     metrics["segments"] = len(segments)
+    no_gt = ("no tracked frame has usable ground truth (inside its time span, positions within "
+             f"{MAX_GT_COORDINATE:g} m)") if not segments else None
     for delta in RPE_DELTAS:
         tr, rot = segment_rpe_errors(segments, delta)
-        # None says there is no pair of tracked frames delta apart inside one segment
-        metrics[f"rpe_{delta}"] = rpe_statistics(tr, rot, delta) if tr.size else None
+        metrics[f"rpe_{delta}"] = _computed(
+            not_computed, f"rpe_{delta}", lambda: rpe_statistics(tr, rot, delta), no_gt or (
+                None if tr.size else f"no two tracked frames {delta} apart with ground truth inside one segment"))
     # each segment is aligned on its own (segments are not connected); errors pooled
-    ate_parts = [ate_errors(G, P)[0] for G, P in segments if len(G) >= 3]
-    metrics["ate"] = ate_statistics(np.concatenate(ate_parts)) if ate_parts else None
+    ate_parts = [G_P for G_P in segments if len(G_P[0]) >= 3]
+    metrics["ate"] = _computed(
+        not_computed, "ate", lambda: ate_statistics(np.concatenate([ate_errors(G, P)[0] for G, P in ate_parts])),
+        no_gt or (None if ate_parts else "no segment has 3 tracked frames with ground truth"))
     T_est, T_true, covs = relative_ground_truth(steps, gt)
-    if len(T_est):
-        metrics.update(consistency_metrics(T_est, T_true, covs))
+    consistency = _computed(not_computed, "anees", lambda: consistency_metrics(T_est, T_true, covs),
+                            None if len(T_est) else "no tracked frame pair has ground truth at both frames")
+    metrics.update(consistency or dict.fromkeys(CONSISTENCY_KEYS))
     return metrics
+
+
+#: Keys of :func:`consistency_metrics` (None when it cannot be computed).
+CONSISTENCY_KEYS = ("anees_translation", "anees_rotation", "share_nees_translation_above_chi2_975",
+                    "share_nees_rotation_above_chi2_975", "chi2_3_975", "nees_pairs")
+
+
+def _computed(reasons: dict, name: str, compute, reason: str | None):
+    """``compute()`` if ``reason`` is None and it succeeds with finite numbers; else None, with the
+    reason recorded in ``reasons[name]``."""
+    if reason is None:
+        try:
+            with np.errstate(all="ignore"):
+                value = compute()
+        except (InputError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            reason = f"cannot be computed ({exc})"
+        else:
+            if all(math.isfinite(v) for v in value.values() if isinstance(v, (int, float))):
+                return value
+            reason = "not finite (ground truth or estimates too large for double precision)"
+    reasons[name] = reason
+    return None

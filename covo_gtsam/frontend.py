@@ -177,9 +177,12 @@ def make_orb(cfg: FrontendConfig | None = None) -> cv2.ORB:
 # images
 # --------------------------------------------------------------------------------------------
 def _check_file(path: str | os.PathLike, what: str) -> str:
+    from .io import file_problem
+
     p = os.fspath(path)
-    if not os.path.isfile(p):
-        raise InputError(f"{p}: {what} file does not exist")
+    problem = file_problem(p)
+    if problem is not None:
+        raise InputError(f"{p}: {what} file {problem}")
     return p
 
 

@@ -61,7 +61,7 @@ from typing import Any, Callable, Sequence
 import gtsam
 import numpy as np
 
-from .covariance import ros_to_tangent, tangent_to_ros
+from .covariance import check_covariance, check_matrix, ros_to_tangent, tangent_to_ros
 from .errors import InputError
 from .geometry import matrix_to_quat
 from .odometry import POSED_STATUSES
@@ -70,15 +70,12 @@ from .odometry import POSED_STATUSES
 NoiseSpec = Any  # gtsam noise model, 6x6 covariance, or callable(step) -> one of those
 
 
-def _as_noise_model(spec: Any) -> gtsam.noiseModel.Base:
+def _as_noise_model(spec: Any, what: str = "covariance") -> gtsam.noiseModel.Base:
+    """A gtsam noise model as it is, or the Gaussian of a 6x6 covariance checked by
+    :func:`~covo_gtsam.covariance.check_covariance` (symmetric positive definite, finite)."""
     if isinstance(spec, gtsam.noiseModel.Base):
         return spec
-    cov = np.asarray(spec, dtype=float)
-    if cov.shape != (6, 6):
-        raise InputError(f"a Pose3 covariance must be 6x6, got shape {cov.shape}")
-    if not np.all(np.isfinite(cov)):
-        raise InputError("covariance contains NaN or inf")
-    return gtsam.noiseModel.Gaussian.Covariance(cov)
+    return gtsam.noiseModel.Gaussian.Covariance(check_covariance(spec, what))
 
 
 def step_keys(
@@ -131,12 +128,13 @@ def between_factors(
 
     Raises:
         InputError: a tracked step lacks its relative pose/covariance, its reference frame is not
-            among the earlier keyed steps, or two steps share a key.
+            among the earlier keyed steps, two steps share a key, or a covariance (the steps' own
+            or ``noise``) is not a finite, symmetric, positive definite 6x6 matrix.
     """
     keys = step_keys(steps, key, prefix, key_by)
     fixed_model = None
     if isinstance(noise, gtsam.noiseModel.Base) or (noise is not None and not callable(noise)):
-        fixed_model = _as_noise_model(noise)
+        fixed_model = _as_noise_model(noise, "noise")
     by_stamp: dict[float, int] = {}
     factors: list[gtsam.BetweenFactorPose3] = []
     initial = gtsam.Values()
@@ -155,11 +153,11 @@ def between_factors(
             if fixed_model is not None:
                 model = fixed_model
             elif noise is not None:
-                model = _as_noise_model(noise(s))
+                model = _as_noise_model(noise(s), f"noise of tracked step {i} (t={s.timestamp})")
             else:
                 if s.covariance is None:
                     raise InputError(f"tracked step {i} (t={s.timestamp}) has no covariance")
-                model = _as_noise_model(s.covariance)
+                model = _as_noise_model(s.covariance, f"covariance of tracked step {i} (t={s.timestamp})")
             factors.append(gtsam.BetweenFactorPose3(keys[ref], k, s.relative, model))
             pose = s.pose if s.pose is not None else initial.atPose3(keys[ref]).compose(s.relative)
         else:  # "first" or "restart"
@@ -186,9 +184,12 @@ def unit_between_factors(
     if sigma is not None and covariance is not None:
         raise InputError("give sigma or covariance, not both")
     if covariance is not None:
-        model = _as_noise_model(covariance)
+        model = _as_noise_model(covariance, "covariance")
     else:
-        s = np.broadcast_to(np.asarray(1.0 if sigma is None else sigma, dtype=float), (6,))
+        try:
+            s = np.broadcast_to(np.asarray(1.0 if sigma is None else sigma, dtype=float), (6,))
+        except (TypeError, ValueError):
+            raise InputError(f"sigma must be one number or 6 numbers, got {sigma!r}") from None
         if not np.all(np.isfinite(s) & (s > 0)):
             raise InputError(f"sigma must be positive and finite, got {sigma!r}")
         model = gtsam.noiseModel.Diagonal.Sigmas(np.array(s))
@@ -212,9 +213,9 @@ def to_pose_with_covariance(T: gtsam.Pose3, cov: np.ndarray) -> dict:
         with the covariance row-major in ROS order ``[x y z rot_x rot_y rot_z]`` for the
         parent-frame (left) perturbation ``T_true = Exp(xi') * T`` (see the module docstring).
     """
-    cov = np.asarray(cov, dtype=float)
-    if cov.shape != (6, 6):
-        raise InputError(f"covariance must be 6x6, got shape {cov.shape}")
+    cov = check_matrix(cov)  # may be singular: the first pose's covariance is zero
+    if not isinstance(T, gtsam.Pose3):
+        raise InputError(f"T must be a gtsam.Pose3, got {type(T).__name__}")
     M = T.matrix()
     ros = tangent_to_ros(cov, T)
     ros = 0.5 * (ros + ros.T)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import IO
@@ -27,6 +28,7 @@ from .errors import DatasetError, InputError
 from .geometry import pose_from_tum, pose_to_tum
 
 __all__ = [
+    "FolderLock",
     "RELATIVE_HEADER",
     "TRAJECTORY_HEADER",
     "RelativePoseWriter",
@@ -61,13 +63,31 @@ def data_lines(path: Path):
     Raises :class:`DatasetError` naming the file when it cannot be read.
     """
     try:
-        lines = Path(path).read_text().splitlines()
+        # as editors write them: a UTF-8 byte-order mark, CRLF or CR line ends; bytes that are not
+        # UTF-8 (e.g. Latin-1 file names) are kept as the file system's surrogate escapes
+        lines = Path(path).read_text(encoding="utf-8-sig", errors="surrogateescape").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from exc
     for no, line in enumerate(lines, 1):
         s = line.strip()
         if s and not s.startswith("#"):
             yield no, s
+
+
+def file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` cannot be read as a file -- ``"does not exist"``, ``"is not a file"`` or
+    ``"cannot be read (...)"`` (e.g. a folder on the way without permission) -- or None if it can."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return "does not exist"
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if not stat.S_ISREG(st.st_mode):
+        return "is not a file"
+    if not os.access(path, os.R_OK):
+        return "cannot be read (permission denied)"
+    return None
 
 
 def _load_rows(path: str | os.PathLike, ncols: int, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -248,3 +268,47 @@ def write_json(path: str | os.PathLike, obj) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+class FolderLock:
+    """Exclusive lock on a folder for the time one command writes into it (``with FolderLock(path):``).
+
+    An advisory ``flock`` on the folder itself: it leaves no file behind and is released when the
+    process ends, however it ends. A second writer gets :class:`DatasetError` at once instead of
+    interleaving its lines with the first one's. Without ``fcntl`` (Windows) there is no lock.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        self._fd: int | None = None
+
+    def acquire(self) -> "FolderLock":
+        if self._fd is not None:  # already held
+            return self
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not on POSIX
+            return self
+        try:
+            fd = os.open(self.path, os.O_RDONLY)
+        except OSError as exc:
+            raise DatasetError(f"{self.path}: cannot open the output folder ({exc.strerror or exc})") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise DatasetError(f"{self.path}: another covo command is writing into this output folder; "
+                               "wait for it or choose another --out") from None
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor releases the flock
+            self._fd = None
+
+    def __enter__(self) -> "FolderLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()

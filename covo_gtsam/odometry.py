@@ -38,6 +38,9 @@ from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, check_bool
 POSED_STATUSES = ("first", "tracked", "restart")
 #: Choices of ``OdometryConfig.motion_model``.
 MOTION_MODELS = ("constant_velocity", "none")
+#: Longest time (s) between a frame and its reference frame that is still matched: a longer gap is
+#: not one recording (e.g. a corrupt timestamp), and the frame term would grow without bound.
+MAX_GAP_S = 3600.0
 
 
 #: Real-valued settings of :class:`OdometryConfig`: kind and range (None: unbounded on that side).
@@ -202,6 +205,8 @@ class OdometryConfig:
     def frame_intervals(self, dt: float | None) -> int:
         """Frame intervals between two frames ``dt`` seconds apart: ``round(dt / frame_interval_s)``,
         at least 1 (timestamp jitter of consecutive frames does not change it); 1 if ``dt`` is None."""
+        if dt is not None and dt > MAX_GAP_S:
+            raise InputError(f"frames {dt:g} s apart: more than {MAX_GAP_S:g} s is not one recording")
         return max(1, int(round(dt / self.frame_interval_s))) if dt is not None and np.isfinite(dt) else 1
 
     def noise_model(self) -> PointNoiseModel:
@@ -391,6 +396,10 @@ class VisualOdometry:
             return self._record(OdometryStep(timestamp, "lost", reason=str(exc)))
         if self._ref is None:
             return self._start(frame, timestamp)
+        if timestamp - self._ref_step.timestamp > MAX_GAP_S:
+            step = OdometryStep(timestamp, "lost", ref_timestamp=self._ref_step.timestamp, reason=(
+                f"{timestamp - self._ref_step.timestamp:.3g} s after its reference frame (more than {MAX_GAP_S:g} s)"))
+            return self._restart(frame, step) if self._lost_run >= self.config.restart_after else self._record(step)
         step = self._track(self._ref, self._ref_step, frame, timestamp)
         last = self._last
         if self.config.keyframes and last is not None and last[1] is not self._ref_step and (
@@ -453,7 +462,7 @@ class VisualOdometry:
                 X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
                 X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
                 res = self._solve(X_ref, X_cur, pairs, res.pose)
-        except EstimationError as exc:
+        except (EstimationError, InputError) as exc:  # InputError: e.g. points moved beyond range by compensation
             step.reason = str(exc)
             return step
         angle = float(np.rad2deg(np.linalg.norm(gtsam.Rot3.Logmap(res.pose.rotation()))))

@@ -25,20 +25,23 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from .camera import Camera
 from .datasets.tum import TumSequence
-from .errors import CovoError, DatasetError
+from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData, load_depth, load_grey
-from .io import RelativePoseWriter, TrajectoryWriter, write_json
+from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
 from .odometry import OdometryConfig, OdometryStep, VisualOdometry
 from .validation import check_int
 
 
 #: Frames decoded and prepared ahead on worker threads.
 PREFETCH = 2
+#: Files a run writes into its results folder (besides the figures of ``plots/``).
+RUN_FILES = ("trajectory.txt", "relative.txt", "metrics.json")
 
 
 @dataclass
@@ -53,9 +56,19 @@ class RunResult:
     plot_files: list[Path] | None = field(default_factory=list)
 
 
-def check_output_dir(out_dir: Path) -> Path:
-    """Create ``out_dir`` if needed and check it is writable; DatasetError otherwise."""
+def check_output_dir(out_dir: str | os.PathLike) -> Path:
+    """Create ``out_dir`` if needed and check it is writable.
+
+    Raises:
+        ConfigError: the path is empty (it would write into the current folder).
+        DatasetError: it exists and is not a folder, or cannot be created or written.
+    """
+    if not os.fspath(out_dir).strip():
+        raise ConfigError("the output folder is an empty path (that would write into the current folder); "
+                          "give a folder name")
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise DatasetError(f"{out_dir}: exists and is not a folder; cannot write results into it")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         probe = out_dir / ".covo_write_test"
@@ -66,12 +79,50 @@ def check_output_dir(out_dir: Path) -> Path:
     return out_dir
 
 
+def prepare_outputs(out: Path, files: Sequence[str], figures: tuple[str, Sequence[str]] | None = None,
+                    write_figures: bool = True) -> None:
+    """Before the first result is written: check that each of ``files`` (names in ``out``) and, with
+    ``write_figures``, the figure folder ``figures = (folder, names)`` can be written, then remove
+    earlier results of those names, so that the folder never mixes two runs.
+
+    Raises:
+        DatasetError: a results file is a folder, the figure folder is a file or not writable.
+    """
+    out = Path(out)
+    for name in files:
+        target = out / name
+        if target.is_dir():
+            raise DatasetError(f"{target}: is a folder; cannot write {name} there")
+    folder = None if figures is None else out / figures[0]
+    if folder is not None and write_figures:
+        if folder.exists() or folder.is_symlink():
+            if not folder.is_dir():
+                raise DatasetError(f"{folder}: exists and is not a folder; cannot write the figures into it "
+                                   "(remove it, or run with --no-plots)")
+            check_output_dir(folder)
+        for name in figures[1]:
+            if (folder / name).is_dir():
+                raise DatasetError(f"{folder / name}: is a folder; cannot write {name} there")
+    stale = [out / name for name in files]
+    if folder is not None and folder.is_dir():
+        stale += [folder / name for name in figures[1] if not (folder / name).is_dir()]
+    for path in stale:
+        try:
+            path.unlink(missing_ok=True)
+        except OSError as exc:
+            raise DatasetError(f"{path}: cannot remove the result of an earlier run ({exc.strerror or exc})") from exc
+
+
 def _load_frame(vo: VisualOdometry, rgb_path: str, depth_path: str, depth_scale: float,
                 depth_offset: float = 0.0) -> FrameData | CovoError:
     """Decode and prepare one frame; errors are returned (the frame is then reported lost)."""
+    cam = vo.camera
     try:
         grey = load_grey(rgb_path)
-        depth = load_depth(depth_path, depth_scale)
+        if grey.shape != (cam.height, cam.width):
+            raise InputError(f"{rgb_path}: image is {grey.shape[1]}x{grey.shape[0]}, the camera's is "
+                             f"{cam.width}x{cam.height}")
+        depth = load_depth(depth_path, depth_scale, shape=(cam.height, cam.width))
         return vo.prepare(grey, depth, depth_offset)
     except CovoError as exc:
         return exc
@@ -92,15 +143,32 @@ def run_sequence(
     ``camera`` (a :class:`Camera` or preset name) overrides ``seq.camera``; ``max_frames`` (an
     integer >= 1, or None for all) limits the frames processed.
 
+    The folder is checked before the first frame (``trajectory.txt``, ``relative.txt``,
+    ``metrics.json`` and, with ``plots``, the figures of ``plots/`` must be writable) and the
+    results of an earlier run of those names are removed, so the folder describes one run; an
+    interrupted run leaves its text files (valid up to the last line) and no ``metrics.json``.
+    The folder is locked while the run writes into it.
+
     Raises:
-        ConfigError: an invalid ``max_frames``, ``camera`` or ``config``.
+        ConfigError: an invalid ``max_frames``, ``camera`` or ``config``, or an empty ``out_dir``.
+        DatasetError: the output folder cannot be written, or another run is writing into it.
     """
     if max_frames is not None:
         check_int("max_frames", max_frames, 1)
     config = config or OdometryConfig()
     vo = VisualOdometry(seq.camera if camera is None else camera, config)
     vo.keep_error_bases = keep_error_bases
-    out = check_output_dir(Path(out_dir))
+    out = check_output_dir(out_dir)
+    with FolderLock(out):
+        from .plots import RUN_PLOTS
+
+        prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
+        return _run(vo, seq, out, config, max_frames, plots, progress)
+
+
+def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig, max_frames: int | None,
+         plots: bool, progress: bool) -> RunResult:
+    """The frame loop and the results of :func:`run_sequence`, in a checked and locked folder."""
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     start = time.perf_counter()
 
@@ -148,7 +216,11 @@ def run_sequence(
     if plots:
         from .plots import plot_run
 
-        result.plot_files = plot_run(vo.steps, seq, metrics, out / "plots")
+        try:
+            result.plot_files = plot_run(vo.steps, seq, metrics, out / "plots")
+        except OSError as exc:
+            raise DatasetError(f"{out / 'plots'}: cannot write the figures ({exc.strerror or exc}); "
+                               "the other results are complete") from exc
     return result
 
 
@@ -197,6 +269,9 @@ def calibrate_sequence(
                    and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1
                    and s.ref_timestamp in lookup and s.timestamp in lookup]
     T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
+    if len(T_est) < 10:
+        raise InputError(f"{seq.path}: the fit needs at least 10 consecutive tracked frame pairs with usable ground "
+                         f"truth at both frames, got {len(T_est)} (of {len(consecutive)} consecutive tracked pairs)")
     fixed = sum(sigma**2 * B for k, B in stacked_bases(consecutive, priors).items() for sigma in [priors[k]])
     return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs,
                             bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),

@@ -78,6 +78,7 @@ def ellipse_xy(ax, center: np.ndarray, cov2: np.ndarray, nsigma: float = 3.0, **
 
 
 RUN_PLOTS = ("trajectory.png", "nees.png", "rpe.png")
+SIMULATION_PLOTS = ("nees.png", "errors_bounds.png")
 
 
 def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path] | None:

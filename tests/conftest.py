@@ -69,3 +69,36 @@ def random_trajectory():
         return t0 + 0.033 * np.arange(n), np.array(poses)
 
     return make
+
+
+def copy_sample(dst: Path, frames: int) -> Path:
+    """A copy of the first ``frames`` frames of the sample sequence in ``dst`` (safe to modify):
+    rgb.txt, depth.txt, the images they list and groundtruth.txt."""
+    import shutil
+
+    (dst / "rgb").mkdir(parents=True)
+    (dst / "depth").mkdir()
+    rgb = [ln for ln in (SAMPLE_DIR / "rgb.txt").read_text().splitlines() if not ln.startswith("#")][:frames]
+    last = float(rgb[-1].split()[0])
+    depth = [ln for ln in (SAMPLE_DIR / "depth.txt").read_text().splitlines()
+             if not ln.startswith("#") and float(ln.split()[0]) <= last + 0.02]
+    for line in rgb + depth:
+        name = line.split()[1]
+        shutil.copy(SAMPLE_DIR / name, dst / name)
+    (dst / "rgb.txt").write_text("\n".join(rgb) + "\n")
+    (dst / "depth.txt").write_text("\n".join(depth) + "\n")
+    shutil.copy(SAMPLE_DIR / "groundtruth.txt", dst / "groundtruth.txt")
+    return dst
+
+
+@pytest.fixture
+def small_sample(tmp_path):
+    """``make(frames=5)`` -> a modifiable copy of the first frames of the sample sequence (a
+    'freiburg1' folder name, so the camera preset is found)."""
+    count = [0]
+
+    def make(frames: int = 5) -> Path:
+        count[0] += 1
+        return copy_sample(tmp_path / f"rgbd_dataset_freiburg1_copy{count[0]}", frames)
+
+    return make

@@ -17,7 +17,12 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..geometry import make_pose, matrix_to_quat, quat_to_matrix
-from ..io import data_lines, load_tum_trajectory
+from ..io import data_lines, file_problem, load_tum_trajectory
+
+#: Largest ground-truth position coordinate (m) used: beyond it (far beyond any geodetic coordinate)
+#: relative poses of two frames lose all precision or overflow, so such frames count as without
+#: ground truth.
+MAX_GT_COORDINATE = 1e9
 
 __all__ = ["Frame", "TumSequence", "associate", "interpolate_poses", "read_file_list", "camera_name_from_path"]
 
@@ -157,8 +162,13 @@ class TumSequence:
     ``"fr3"`` from the folder name, or None), ``timestamps`` (colour stamps of the frames, s, (K,)),
     ``depth_timestamps`` (the stamps of their depth images, s, (K,)),
     ``rgb_paths`` / ``depth_paths`` (absolute paths), ``groundtruth`` (T_world,cam (K, 4, 4) at the
-    frame stamps, or None without ``groundtruth.txt``), ``gt_valid`` (K,) bool and
-    ``missing_files`` (listed image files that do not exist; their frames are reported lost when read).
+    frame stamps, or None without ``groundtruth.txt``), ``gt_valid`` (K,) bool (the frame's stamp is
+    inside the ground truth's span, between samples at most ``max_gap`` apart, and its position is
+    within :data:`MAX_GT_COORDINATE` m) and
+    ``unassociated`` (``(timestamp, file name)`` of the colour frames of ``rgb.txt`` without a
+    depth image within ``max_dt``; they are no frames of the sequence) and
+    ``missing_files`` (listed image files that do not exist or cannot be read; their frames are
+    reported lost when read).
     ``camera`` is the given camera (a :class:`~covo_gtsam.camera.Camera`, or a preset name such as
     ``"fr1"``, which must be known: :class:`ConfigError` otherwise), else the preset named by
     ``camera_name`` (reading it raises :class:`DatasetError` when neither is known).
@@ -183,17 +193,23 @@ class TumSequence:
                 f"{self.path}: no frame could be associated: no colour stamp of rgb.txt ({len(rgb_t)} lines) has a "
                 f"depth stamp of depth.txt ({len(dep_t)} lines) within {max_dt} s"
             )
+        used = {i for i, _ in pairs}
+        #: colour frames of rgb.txt without a depth image within max_dt: (timestamp, file name)
+        self.unassociated = sorted((float(rgb_t[i]), rgb_n[i]) for i in range(len(rgb_t)) if i not in used)
+        self.max_dt = max_dt
         self.timestamps = np.array([rgb_t[i] for i, _ in pairs], dtype=float)
         self.depth_timestamps = np.array([dep_t[j] for _, j in pairs], dtype=float)
         self.rgb_paths = [str(self.path / rgb_n[i]) for i, _ in pairs]
         self.depth_paths = [str(self.path / dep_n[j]) for _, j in pairs]
         # A listed file that is missing makes its frame lost when it is read (the run goes on);
         # when no frame has both of its images the folder itself is wrong.
-        self.missing_files = [p for pair in zip(self.rgb_paths, self.depth_paths) for p in pair if not os.path.isfile(p)]
+        problems = {p: file_problem(p) for pair in zip(self.rgb_paths, self.depth_paths) for p in pair}
+        self.missing_files = [p for p, problem in problems.items() if problem is not None]
         missing = set(self.missing_files)
         if all(rp in missing or dp in missing for rp, dp in zip(self.rgb_paths, self.depth_paths)):
+            first = self.missing_files[0]
             raise DatasetError(f"{self.path}: no frame has both its colour and its depth image "
-                               f"(e.g. {self.missing_files[0]} does not exist)")
+                               f"(e.g. {first} {problems[first]})")
         self.camera_name = camera_name_from_path(self.path)
         if isinstance(camera, str):  # a preset name
             from ..camera import Camera
@@ -208,6 +224,9 @@ class TumSequence:
             stamps, poses = load_tum_trajectory(gt_file)
             if stamps.size:
                 self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps, max_gap)
+                G = self.groundtruth
+                usable = np.isfinite(G).all(axis=(1, 2)) & (np.abs(G[:, :3, 3]).max(axis=1) <= MAX_GT_COORDINATE)
+                self.gt_valid &= usable
 
     @property
     def camera(self):
@@ -249,6 +268,9 @@ class TumSequence:
         part.rgb_paths, part.depth_paths = self.rgb_paths[start:stop], self.depth_paths[start:stop]
         listed = set(part.rgb_paths) | set(part.depth_paths)
         part.missing_files = [f for f in self.missing_files if f in listed]
+        lo, hi = part.timestamps[0], part.timestamps[-1]
+        part.unassociated = [u for u in self.unassociated
+                             if (start == 0 or u[0] >= lo) and (stop == len(self) or u[0] <= hi)]
         part.gt_valid = self.gt_valid[start:stop]
         part.groundtruth = None if self.groundtruth is None else self.groundtruth[start:stop]
         return part

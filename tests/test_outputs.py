@@ -1,0 +1,186 @@
+"""The results folder: checked before the first frame, never mixing two runs, one writer at a time."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+
+import numpy as np
+import pytest
+
+from covo_gtsam import cli
+from covo_gtsam.cli import main
+from covo_gtsam.io import load_relative_poses, load_tum_trajectory
+from covo_gtsam.odometry import VisualOdometry
+
+
+def error_line(capsys) -> str:
+    """The single non-empty stderr line of a failed command."""
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("covo: ") and "Traceback" not in lines[0]
+    return lines[0]
+
+
+def test_interrupted_rerun_leaves_no_results_of_the_earlier_run(small_sample, tmp_path, monkeypatch, capsys):
+    seq, out = small_sample(5), tmp_path / "out"
+    assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 0
+    assert (out / "metrics.json").is_file() and (out / "plots" / "trajectory.png").is_file()
+    # the second run is interrupted at its third frame
+    original = VisualOdometry.register_frame
+    calls = []
+
+    def interrupt(self, *args, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return original(self, *args, **kw)
+
+    monkeypatch.setattr(VisualOdometry, "register_frame", interrupt)
+    assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 130
+    capsys.readouterr()
+    # what is left describes the interrupted run alone: its first two frames, no metrics, no figures
+    stamps, _ = load_tum_trajectory(out / "trajectory.txt")
+    assert len(stamps) == 2
+    assert len(load_relative_poses(out / "relative.txt")[0]) == 1
+    assert not (out / "metrics.json").exists()
+    assert not any((out / "plots").glob("*.png"))
+
+
+def test_rerun_without_plots_removes_the_earlier_figures(small_sample, tmp_path, capsys):
+    seq, out = small_sample(4), tmp_path / "out"
+    assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 0
+    assert (out / "plots" / "nees.png").is_file()
+    assert main(["run", str(seq), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    assert not any((out / "plots").glob("*.png"))
+    assert json.loads((out / "metrics.json").read_text())["frames"] == 4
+
+
+@pytest.mark.parametrize("command", [["run"], ["analyze-noise"], ["calibrate"]])
+def test_empty_output_path_is_refused(small_sample, tmp_path, monkeypatch, capsys, command):
+    seq = small_sample(2)
+    work = tmp_path / "cwd"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    assert main([*command, str(seq), "--out", ""]) == 2
+    assert "empty path" in error_line(capsys)
+    assert os.listdir(work) == []
+
+
+def test_simulate_refuses_an_empty_output_path(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "--runs", "1", "--out", ""]) == 2
+    assert "empty path" in error_line(capsys)
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("blocker", ["plots_file", "metrics_dir", "figure_dir", "trajectory_dir"])
+def test_unwritable_result_is_reported_before_the_first_frame(small_sample, tmp_path, capsys, blocker):
+    seq, out = small_sample(3), tmp_path / "out"
+    out.mkdir()
+    if blocker == "plots_file":
+        (out / "plots").write_text("not a folder")
+        needle = "plots"
+    elif blocker == "metrics_dir":
+        (out / "metrics.json").mkdir()
+        needle = "metrics.json"
+    elif blocker == "figure_dir":
+        (out / "plots" / "nees.png").mkdir(parents=True)
+        needle = "nees.png"
+    else:
+        (out / "trajectory.txt").mkdir()
+        needle = "trajectory.txt"
+    assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 2
+    assert needle in error_line(capsys)
+    assert not (out / "relative.txt").exists()  # nothing was written
+
+
+def test_plots_file_is_fine_without_plots(small_sample, tmp_path, capsys):
+    seq, out = small_sample(3), tmp_path / "out"
+    out.mkdir()
+    (out / "plots").write_text("a file of the user's")
+    assert main(["run", str(seq), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    assert (out / "plots").read_text() == "a file of the user's"
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root can write into any folder")
+def test_unwritable_plots_folder_is_reported_before_the_first_frame(small_sample, tmp_path, capsys):
+    seq, out = small_sample(3), tmp_path / "out"
+    (out / "plots").mkdir(parents=True)
+    (out / "plots").chmod(0o500)
+    try:
+        assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 2
+        assert "plots" in error_line(capsys)
+        assert not (out / "trajectory.txt").exists()
+    finally:
+        (out / "plots").chmod(0o700)
+
+
+def _hold_lock(folder):
+    """Lock ``folder`` as another process writing into it would (flock on the folder)."""
+    fd = os.open(folder, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return fd
+
+
+@pytest.mark.parametrize("command", ["run", "calibrate", "analyze-noise", "simulate"])
+def test_second_writer_into_the_same_folder_is_refused(small_sample, tmp_path, capsys, command):
+    seq, out = small_sample(2), tmp_path / "out"
+    out.mkdir()
+    (out / "relative.txt").write_text("# the other run's line\n")
+    args = {"run": ["run", str(seq)], "calibrate": ["calibrate", str(seq)],
+            "analyze-noise": ["analyze-noise", str(seq)], "simulate": ["simulate", "--runs", "2"]}[command]
+    fd = _hold_lock(out)
+    try:
+        assert main([*args, "--out", str(out), "--quiet"]) == 2
+        assert "another covo command" in error_line(capsys)
+    finally:
+        os.close(fd)
+    assert (out / "relative.txt").read_text() == "# the other run's line\n"
+    # once the other writer is done, the folder can be used again
+    if command == "run":
+        assert main([*args, "--out", str(out), "--quiet", "--no-plots"]) == 0
+
+
+def test_run_leaves_the_folder_unlocked(small_sample, tmp_path, capsys):
+    seq, out = small_sample(2), tmp_path / "out"
+    assert main(["run", str(seq), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    os.close(_hold_lock(out))  # would raise BlockingIOError if the run had kept its lock
+
+
+def test_every_frame_lost_is_loud_with_exit_code_3(small_sample, tmp_path, capsys):
+    import cv2
+
+    seq, out = small_sample(3), tmp_path / "out"
+    for png in (seq / "depth").glob("*.png"):
+        cv2.imwrite(str(png), np.zeros((480, 640), np.uint16))
+    assert main(["run", str(seq), "--out", str(out), "--quiet"]) == cli.EXIT_NOTHING_TRACKED == 3
+    captured = capsys.readouterr()
+    assert "no frame could be tracked" in captured.err and "all 3 frames are lost" in captured.err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["tracked_frames"] == 0 and len(metrics["lost"]) == 3
+
+
+@pytest.mark.parametrize("exc", [KeyboardInterrupt(), "import"])
+def test_ctrl_c_during_start_up_is_one_line(monkeypatch, capsys, exc):
+    def interrupted():
+        if exc == "import":
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as inner:
+                raise ImportError("initialization failed") from inner
+        raise exc
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)
+    assert main(["run", "x", "--out", "y"]) == 130
+    assert "interrupted" in error_line(capsys)
+
+
+def test_unrelated_import_error_is_not_hidden(monkeypatch):
+    def broken():
+        raise ImportError("no module named something")
+
+    monkeypatch.setattr(cli, "build_parser", broken)
+    with pytest.raises(ImportError):
+        main(["run", "x", "--out", "y"])

@@ -1,0 +1,93 @@
+"""Sequence folders as editors and tools leave them: every listed frame accounted for, clear reasons."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import cv2
+import pytest
+
+from covo_gtsam.cli import main
+from covo_gtsam.datasets.tum import TumSequence
+from covo_gtsam.errors import DatasetError
+
+
+def one_error_line(capsys) -> str:
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("covo: error: "), lines
+    return lines[0]
+
+
+@pytest.mark.parametrize("style", ["bom", "crlf", "cr", "bom+crlf", "tabs"])
+def test_lists_as_editors_write_them(small_sample, style):
+    seq = small_sample(3)
+    plain = TumSequence(seq)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        text = (seq / name).read_text()
+        if "crlf" in style:
+            text = text.replace("\n", "\r\n")
+        if style == "cr":
+            text = text.replace("\n", "\r")
+        if style == "tabs":
+            text = text.replace(" ", "\t")
+        data = text.encode("utf-8")
+        if "bom" in style:
+            data = b"\xef\xbb\xbf" + data
+        (seq / name).write_bytes(data)
+    edited = TumSequence(seq)
+    assert edited.timestamps.tolist() == plain.timestamps.tolist()
+    assert edited.rgb_paths == plain.rgb_paths and edited.gt_valid.all()
+
+
+def test_depth_folder_that_is_a_file_is_not_reported_as_missing(small_sample, tmp_path, capsys):
+    seq = small_sample(2)
+    for png in (seq / "depth").iterdir():
+        png.unlink()
+    (seq / "depth").rmdir()
+    (seq / "depth").write_text("not a folder")
+    assert main(["run", str(seq), "--out", str(tmp_path / "out")]) == 2
+    line = one_error_line(capsys)
+    assert "cannot be read" in line and "does not exist" not in line
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads any folder")
+def test_unreadable_depth_folder_is_not_reported_as_missing(small_sample):
+    seq = small_sample(2)
+    (seq / "depth").chmod(0)
+    try:
+        with pytest.raises(DatasetError, match="cannot be read") as info:
+            TumSequence(seq)
+        assert "does not exist" not in str(info.value)
+    finally:
+        (seq / "depth").chmod(0o755)
+
+
+def test_lost_frame_of_a_wrong_size_colour_image_names_the_file(small_sample, tmp_path, capsys):
+    seq = small_sample(3)
+    rgb = TumSequence(seq).rgb_paths[1]
+    cv2.imwrite(rgb, cv2.resize(cv2.imread(rgb), (320, 240)))
+    assert main(["run", str(seq), "--out", str(tmp_path / "out"), "--quiet", "--no-plots"]) == 0
+    lost = json.loads((tmp_path / "out" / "metrics.json").read_text())["lost"]
+    assert len(lost) == 1 and os.path.basename(rgb) in lost[0]["reason"] and "320x240" in lost[0]["reason"]
+
+
+def test_colour_frame_without_depth_is_accounted_for(small_sample, tmp_path, capsys):
+    seq = small_sample(4)
+    lines = (seq / "depth.txt").read_text().splitlines()
+    (seq / "depth.txt").write_text("\n".join(lines[:1] + lines[2:]) + "\n")  # the second frame has no depth
+    assert main(["run", str(seq), "--out", str(tmp_path / "out"), "--quiet", "--no-plots"]) == 0
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["frames"] == 3
+    rgb_second = (seq / "rgb.txt").read_text().splitlines()[1].split()
+    assert [u["file"] for u in m["unassociated"]] == [rgb_second[1]]
+    assert "no depth image" in m["unassociated"][0]["reason"]
+
+
+@pytest.mark.parametrize("suffix, text", [(".json", '{"pixel_sigma": 3.0}'), (".toml", "pixel_sigma = 3.0")])
+def test_configuration_file_with_a_byte_order_mark(tmp_path, suffix, text):
+    from covo_gtsam.cli import load_config_file
+
+    path = tmp_path / f"config{suffix}"
+    path.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode("utf-8"))
+    assert load_config_file(str(path)).pixel_sigma == 3.0
