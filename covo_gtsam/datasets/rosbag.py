@@ -18,10 +18,13 @@ colour image and its depth image.
   first); a frame's timestamp is its colour stamp.
 * Camera: intrinsics ``K`` and ``plumb_bob`` distortion ``D = [k1 k2 p1 p2 k3]`` of the first
   message on the camera-info topic, unless a camera is given.
-* Ground truth: ``/tf`` (``tf2_msgs/TFMessage``; also ``/tf_static``) transforms whose
-  ``child_frame_id`` is ``gt_frame`` (default: the colour images' ``frame_id``) are
-  ``T_parent,camera`` samples, interpolated at the frame stamps like ``groundtruth.txt``. When the
-  bag has none, ``groundtruth`` is None and the run's metrics are skipped.
+* Ground truth: ``/tf`` (``tf2_msgs/TFMessage``; also ``/tf_static``) transforms from
+  ``gt_parent`` (default ``world``) directly to ``gt_frame`` (default: the colour images'
+  ``frame_id``) are ``T_world,camera`` samples, interpolated at the frame stamps like
+  ``groundtruth.txt``. Chains of transforms are not composed: the TUM bags publish
+  ``/world -> /kinect`` and the camera frames below ``/kinect``, so for them no ground truth is
+  found (convert ``groundtruth.txt`` instead). Without ground truth ``groundtruth`` is None and
+  the run's accuracy metrics are skipped.
 """
 
 from __future__ import annotations
@@ -125,6 +128,7 @@ class RosbagSequence:
     def __init__(self, path: str | os.PathLike, camera=None, rgb_topic: str = DEFAULT_TOPICS["rgb_topic"],
                  depth_topic: str = DEFAULT_TOPICS["depth_topic"],
                  camera_info_topic: str = DEFAULT_TOPICS["camera_info_topic"], gt_frame: str | None = None,
+                 gt_parent: str = "world",
                  max_dt: float = 0.02, max_gap: float = 0.1) -> None:
         from ..ros_io import require_rosbags
 
@@ -141,6 +145,7 @@ class RosbagSequence:
             camera = Camera.preset(camera)
         self._camera = camera
         self._info_camera = None
+        self.gt_parent = gt_parent.lstrip("/")
         self._scan(gt_frame, max_dt, max_gap)
 
     # -- reading ------------------------------------------------------------------------------
@@ -200,6 +205,8 @@ class RosbagSequence:
                         self._info_camera = self._camera_from_info(msg)
                 else:
                     for tr in msg.transforms:
+                        if tr.header.frame_id.lstrip("/") != self.gt_parent:
+                            continue
                         q = tr.transform.rotation
                         p = tr.transform.translation
                         tf.setdefault(tr.child_frame_id.lstrip("/"), []).append(
