@@ -183,7 +183,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         pixel_sigma=args.pixel_sigma, num_points=args.points,
         depth_range=(args.min_depth, args.max_depth),
     )
-    result = run_simulation(cfg, progress=not args.quiet)
+    if args.workers or args.scheduler:
+        from .simulation import run_simulation_parallel
+
+        result = run_simulation_parallel(cfg, workers=args.workers, scheduler=args.scheduler,
+                                         timeout=args.connect_timeout)
+    else:
+        result = run_simulation(cfg, progress=not args.quiet)
     summary = result.summary()
     write_json(out / "metrics.json", summary)
     if not args.no_plots:
@@ -198,6 +204,39 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     )
     print(f"results in {out}")
     return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .study import evaluate_sequences
+
+    config = _load_config(args).to_dict() if args.config else None
+    topics = {"rgb_topic": args.rgb_topic, "depth_topic": args.depth_topic,
+              "camera_info_topic": args.camera_info_topic}
+    if args.camera:
+        _camera(args)  # a bad --camera fails here, before any run
+    rows = evaluate_sequences(args.sequences, args.out, camera=args.camera, config=config,
+                              max_frames=args.max_frames, workers=args.workers, scheduler=args.scheduler,
+                              timeout=args.connect_timeout, plots=not args.no_plots, topics=topics,
+                              progress=not args.quiet)
+    for r in rows:
+        line = f"{r['sequence']}: {r['frames']} frames, {r['lost']} lost"
+        if r["rpe1_m"] is not None:
+            line += f", RPE1 {r['rpe1_m']:.4f} m"
+        if r["anees_t"] is not None:
+            line += f", ANEES t {r['anees_t']:.2f} r {r['anees_r']:.2f}"
+        print(line)
+    print(f"results in {args.out} (summary.csv, summary.md)")
+    return 0
+
+
+def _parallel_arguments(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument("--workers", type=_int_in(1, 256), metavar="N",
+                        help=f"local worker processes for the {what} (1: in this process)")
+    parser.add_argument("--scheduler", metavar="ADDR",
+                        help=f"run the {what} on the Dask distributed scheduler at ADDR, e.g. tcp://127.0.0.1:8786 "
+                        "(needs dask[distributed] here and on the workers)")
+    parser.add_argument("--connect-timeout", type=_float_in(maximum=600), default=10.0, metavar="S",
+                        help="seconds to wait for the scheduler (default 10)")
 
 
 def cmd_analyze_noise(args: argparse.Namespace) -> int:
@@ -373,8 +412,26 @@ def build_parser() -> argparse.ArgumentParser:
                      help="nearest depth (default 0.5 m)")
     sim.add_argument("--max-depth", type=_float_in(maximum=MAX_DEPTH), default=5.0, metavar="M",
                      help=f"farthest depth (default 5 m, at most {MAX_DEPTH:g} m)")
+    _parallel_arguments(sim, "Monte Carlo runs (same seed, same numbers)")
     _output_arguments(sim, "DIR")
     sim.set_defaults(func=cmd_simulate)
+
+    ev = _command(
+        sub, "evaluate",
+        help="run covo on many sequences (TUM folders or ROS bags) and summarise, locally or on Dask",
+        description="Run `covo run` on each sequence into DIR/<name>/ and write DIR/summary.csv, DIR/summary.md "
+        "(frames, lost, RPE 1 and 30 frames, ATE, ANEES, share of NEES above 9.35, frames/s per sequence) and "
+        "DIR/plots/summary.png. The runs go to a local process pool (default one per sequence, at most one per "
+        "core) or to a Dask distributed cluster; the numbers do not depend on where they ran.",
+    )
+    ev.add_argument("sequences", nargs="+", metavar="SEQ", help="TUM RGB-D folders, ROS 1 .bag files or ROS 2 bags")
+    _camera_argument(ev)
+    _topic_arguments(ev)
+    ev.add_argument("--max-frames", type=_int_in(1), metavar="N", help="only the first N frames of each (default: all)")
+    ev.add_argument("--config", metavar="FILE", help="TOML or JSON settings for every run (see README: configuration)")
+    _parallel_arguments(ev, "sequences")
+    _output_arguments(ev, "DIR")
+    ev.set_defaults(func=cmd_evaluate)
     noise = _command(
         sub, "analyze-noise",
         help="measure pixel and depth noise of matched inliers against ground truth (thesis 5.3.1)",
