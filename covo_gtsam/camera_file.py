@@ -10,8 +10,8 @@ Two layouts are read:
   ``depth_scale`` (raw depth units per metre) is not part of ROS's format; without it the run's
   configuration keeps its own (default 5000). Needs PyYAML.
 * **TOML** (``.toml``) or **JSON** (``.json``) with the keys ``fx fy cx cy`` (pixels), ``width
-  height`` (pixels), ``depth_scale`` (raw depth units per metre: TUM RGB-D 5000; ETH3D SLAM,
-  ICL-NUIM, Bonn and most other datasets 1000) and the optional distortion ``k1 k2 p1 p2 k3``
+  height`` (pixels), ``depth_scale`` (raw depth units per metre of the depth images: 5000 for TUM
+  RGB-D, 1000 for depth recorded in millimetres) and the optional distortion ``k1 k2 p1 p2 k3``
   (OpenCV's order; 0 when absent) and ``name``.
 
 Pixel coordinates and distortion follow :class:`~covo_gtsam.camera.Camera` (OpenCV's model,
