@@ -52,7 +52,7 @@ def _image(ts, ros1, t, arr, encoding):
 
 
 def write_bag(path, seq: TumSequence, ros1: bool, colour: str, depth: str, n: int = N, tf: bool = True,
-              info: bool = True, topics=("/camera/rgb/image_color", "/camera/depth/image")):
+              info: bool = True, topics=("/camera/rgb/image_color", "/camera/depth/image"), mcap: bool = False):
     """A bag of the first ``n`` frames of ``seq``: colour rgb8/bgr8, depth 32FC1 (metres, NaN = none)
     or 16UC1 (millimetres, rounded), fr1 camera info, /tf world -> camera from groundtruth.txt."""
     ts = _typestore(ros1)
@@ -63,7 +63,10 @@ def write_bag(path, seq: TumSequence, ros1: bool, colour: str, depth: str, n: in
     else:
         from rosbags.rosbag2 import Writer
 
-        writer, ser = Writer(path, version=8), ts.serialize_cdr
+        from rosbags.rosbag2 import StoragePlugin
+
+        plugin = StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
+        writer, ser = Writer(path, version=8, storage_plugin=plugin), ts.serialize_cdr
     writer.open()
     img_t = "sensor_msgs/msg/Image"
     c_rgb = writer.add_connection(topics[0], img_t, typestore=ts)
@@ -287,9 +290,11 @@ def test_bag_bad_input_is_one_line_exit_2(fr1_desk_dir, tmp_path, capsys):
     assert capsys.readouterr().err.count("\n") == 1
 
 
-def test_bag_reader_streams_in_order_with_camera_info(fr1_desk_dir, tmp_path):
+@pytest.mark.parametrize("kind", ["ros1", "ros2_mcap"])
+def test_bag_reader_streams_in_order_with_camera_info(fr1_desk_dir, tmp_path, kind):
     seq = TumSequence(fr1_desk_dir)
-    bag = write_bag(tmp_path / "d.bag", seq, ros1=True, colour="rgb8", depth="32FC1", n=6)
+    path = tmp_path / ("d.bag" if kind == "ros1" else "d_mcap")
+    bag = write_bag(path, seq, ros1=kind == "ros1", colour="rgb8", depth="32FC1", n=6, mcap=kind == "ros2_mcap")
     rs = RosbagSequence(bag)
     assert len(rs) == 6 and rs.camera_frame == FRAME and rs.gt_valid.all()
     assert (rs.camera.fx, rs.camera.cy, rs.camera.dist) == (517.3, 255.3, tuple(FR1_D))
