@@ -52,9 +52,12 @@ def _image(ts, ros1, t, arr, encoding):
 
 
 def write_bag(path, seq: TumSequence, ros1: bool, colour: str, depth: str, n: int = N, tf: bool = True,
-              info: bool = True, topics=("/camera/rgb/image_color", "/camera/depth/image"), mcap: bool = False):
+              info: bool = True, topics=("/camera/rgb/image_color", "/camera/depth/image"), mcap: bool = False,
+              chain: bool = False):
     """A bag of the first ``n`` frames of ``seq``: colour rgb8/bgr8, depth 32FC1 (metres, NaN = none)
-    or 16UC1 (millimetres, rounded), fr1 camera info, /tf world -> camera from groundtruth.txt."""
+    or 16UC1 (millimetres, rounded), fr1 camera info, /tf world -> camera from groundtruth.txt
+    (with ``chain``, like the TUM bags: world -> kinect moving, kinect -> openni_rgb_frame ->
+    camera fixed, all on /tf at the ground-truth rate)."""
     ts = _typestore(ros1)
     if ros1:
         from rosbags.rosbag1 import Writer
@@ -110,14 +113,25 @@ def write_bag(path, seq: TumSequence, ros1: bool, colour: str, depth: str, n: in
         T = ts.types
         from covo_gtsam.geometry import matrix_to_quat
 
-        for t, P in zip(gt_t[keep], gt_P[keep]):
+        def transform(t, parent, child, P):
             q = matrix_to_quat(P[:3, :3])
-            tr = T["geometry_msgs/msg/TransformStamped"](
-                header=_header(ts, ros1, float(t), "/world"), child_frame_id=FRAME,
+            return T["geometry_msgs/msg/TransformStamped"](
+                header=_header(ts, ros1, float(t), parent), child_frame_id=child,
                 transform=T["geometry_msgs/msg/Transform"](
                     translation=T["geometry_msgs/msg/Vector3"](x=P[0, 3], y=P[1, 3], z=P[2, 3]),
                     rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
-            msgs.append((float(t), c_tf, ser(T[tf_t](transforms=[tr]), tf_t)))
+
+        # fixed links: kinect -> rgb frame (a shift), rgb frame -> optical frame (the usual rotation)
+        T_kr = gtsam.Pose3(gtsam.Rot3(), np.array([0.0, -0.02, 0.0])).matrix()
+        T_ro = gtsam.Pose3(gtsam.Rot3.RzRyRx(-np.pi / 2, 0, -np.pi / 2), np.zeros(3)).matrix()
+        for t, P in zip(gt_t[keep], gt_P[keep]):
+            if chain:
+                trs = [transform(t, "/world", "/kinect", P @ np.linalg.inv(T_kr @ T_ro)),
+                       transform(t, "/kinect", "/openni_rgb_frame", T_kr),
+                       transform(t, "/openni_rgb_frame", "/" + FRAME, T_ro)]
+            else:
+                trs = [transform(t, "/world", FRAME, P)]
+            msgs.append((float(t), c_tf, ser(T[tf_t](transforms=trs), tf_t)))
     for t, conn, data in sorted(msgs, key=lambda m: m[0]):
         writer.write(conn, int(round(t * 1e9)), data)
     writer.close()
@@ -163,8 +177,12 @@ def _same_trajectory(a, b):
 
 def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys):
     seq = TumSequence(fr1_rpy_dir)
-    bag = write_bag(tmp_path / "fr1.bag", seq, ros1=True, colour="rgb8", depth="32FC1")
+    bag = write_bag(tmp_path / "fr1.bag", seq, ros1=True, colour="rgb8", depth="32FC1", chain=True)
     ref = reference_folder(tmp_path / "rgbd_dataset_freiburg1_ref", seq)
+    # the tf chain world -> kinect -> rgb frame -> optical frame gives groundtruth.txt's poses
+    rs = RosbagSequence(bag)
+    assert rs.gt_valid.all()
+    np.testing.assert_allclose(rs.groundtruth, seq.groundtruth[:N], atol=1e-6)
     _run(["run", str(bag), "--out", str(tmp_path / "bag_out"), "--bag-out", "ros1"])
     _run(["run", str(ref), "--out", str(tmp_path / "ref_out")])
     _same_trajectory(tmp_path / "ref_out", tmp_path / "bag_out")

@@ -18,13 +18,14 @@ colour image and its depth image.
   first); a frame's timestamp is its colour stamp.
 * Camera: intrinsics ``K`` and ``plumb_bob`` distortion ``D = [k1 k2 p1 p2 k3]`` of the first
   message on the camera-info topic, unless a camera is given.
-* Ground truth: ``/tf`` (``tf2_msgs/TFMessage``; also ``/tf_static``) transforms from
-  ``gt_parent`` (default ``world``) directly to ``gt_frame`` (default: the colour images'
-  ``frame_id``) are ``T_world,camera`` samples, interpolated at the frame stamps like
-  ``groundtruth.txt``. Chains of transforms are not composed: the TUM bags publish
-  ``/world -> /kinect`` and the camera frames below ``/kinect``, so for them no ground truth is
-  found (convert ``groundtruth.txt`` instead). Without ground truth ``groundtruth`` is None and
-  the run's accuracy metrics are skipped.
+* Ground truth: the chain of ``/tf`` and ``/tf_static`` transforms (``tf2_msgs/TFMessage``)
+  from ``gt_parent`` (default ``world``) down to ``gt_frame`` (default: the colour images'
+  ``frame_id``), e.g. in the TUM bags ``/world -> /kinect`` (motion capture) and the fixed links
+  ``/kinect -> ... -> /openni_rgb_optical_frame``. Each link is interpolated at the frame stamps
+  like ``groundtruth.txt`` (linear / slerp, no gap above 0.1 s, inside its span); a link from
+  ``/tf_static`` or with a single distinct value is constant. ``T_world,cam`` is the product of
+  the links; a frame has ground truth where every link has. Without a chain ``groundtruth`` is
+  None and the run's accuracy metrics are skipped.
 """
 
 from __future__ import annotations
@@ -186,7 +187,7 @@ class RosbagSequence:
             tf_c = [c for c in reader.connections if c.topic in TF_TOPICS]
             rgb_t, depth_t = [], []
             frame_id = ""
-            tf: dict[str, list] = {}
+            tf: dict[str, dict] = {}  # child frame -> parent, static, samples (stamp, position, quaternion)
             for conn, _, raw in reader.messages(connections=rgb_c + depth_c + info_c + tf_c):
                 msg = reader.deserialize(raw, conn.msgtype)
                 if conn.topic == self.rgb_topic:
@@ -204,13 +205,13 @@ class RosbagSequence:
                     if self._info_camera is None:
                         self._info_camera = self._camera_from_info(msg)
                 else:
+                    static = conn.topic == "/tf_static"
                     for tr in msg.transforms:
-                        if tr.header.frame_id.lstrip("/") != self.gt_parent:
-                            continue
                         q = tr.transform.rotation
                         p = tr.transform.translation
-                        tf.setdefault(tr.child_frame_id.lstrip("/"), []).append(
-                            (_stamp(tr.header), (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
+                        link = tf.setdefault(tr.child_frame_id.lstrip("/"),
+                                             {"parent": tr.header.frame_id.lstrip("/"), "static": static, "s": []})
+                        link["s"].append((_stamp(tr.header), (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
         finally:
             reader.close()
 
@@ -227,11 +228,30 @@ class RosbagSequence:
         self.gt_frame = (gt_frame or self.camera_frame).lstrip("/")
         self.groundtruth = None
         self.gt_valid = np.zeros(len(self.timestamps), bool)
-        samples = tf.get(self.gt_frame)
-        if samples:
-            stamps = np.array([s[0] for s in samples])
-            poses = make_pose(quat_to_matrix(np.array([s[2] for s in samples])), np.array([s[1] for s in samples]))
-            self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps, max_gap)
+        chain = []
+        frame = self.gt_frame
+        while frame != self.gt_parent and frame in tf and len(chain) < 64:
+            chain.append(tf[frame])
+            frame = tf[frame]["parent"]
+        if chain and frame == self.gt_parent:
+            self.groundtruth, self.gt_valid = self._compose_chain(chain[::-1], max_gap)
+
+    def _compose_chain(self, links: list[dict], max_gap: float) -> tuple[np.ndarray, np.ndarray]:
+        """``T_world,cam`` (K, 4, 4) and validity (K,) at the frame stamps from tf links, parent first."""
+        K = len(self.timestamps)
+        total = np.tile(np.eye(4), (K, 1, 1))
+        valid = np.ones(K, bool)
+        for link in links:
+            stamps = np.array([x[0] for x in link["s"]])
+            poses = make_pose(quat_to_matrix(np.array([x[2] for x in link["s"]])), np.array([x[1] for x in link["s"]]))
+            if link["static"] or np.ptp(poses, axis=0).max() == 0:
+                T, ok = np.broadcast_to(poses[-1], (K, 4, 4)), np.ones(K, bool)
+            else:
+                T, ok = interpolate_poses(stamps, poses, self.timestamps, max_gap)
+            total = total @ T
+            valid &= ok
+        total[~valid] = np.eye(4)
+        return total, valid
 
     def _camera_from_info(self, msg):
         from ..camera import Camera
