@@ -324,3 +324,24 @@ def test_bag_reader_streams_in_order_with_camera_info(fr1_desk_dir, tmp_path, ki
         bgr = cv2.imread(seq.rgb_paths[i], cv2.IMREAD_COLOR)
         np.testing.assert_array_equal(grey, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
         np.testing.assert_array_equal(depth, load_depth(seq.depth_paths[i], 5000.0))
+
+
+def test_bag_images_are_streamed_memory_stays_flat(fr1_rpy_dir, tmp_path):
+    """Peak memory while decoding a bag's frames one by one does not grow with the bag's length."""
+    import tracemalloc
+
+    seq = TumSequence(fr1_rpy_dir)
+    peaks = {}
+    for n in (6, 24):
+        rs = RosbagSequence(write_bag(tmp_path / f"b{n}.bag", seq, ros1=True, colour="rgb8", depth="32FC1", n=n,
+                                      tf=False))
+        tracemalloc.start()
+        try:
+            count = sum(1 for _ in rs.images())
+            peaks[n] = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert count == n
+    frame_bytes = 640 * 480 * (3 + 4)  # one colour and one depth message
+    assert peaks[24] < 1.3 * peaks[6]
+    assert peaks[24] < 12 * frame_bytes  # holding all 24 frames would take 24
