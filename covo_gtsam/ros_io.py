@@ -146,7 +146,7 @@ class OdometryBagWriter:
             if dt > 0:
                 xi = gtsam.Pose3.Logmap(step.relative)
                 w, v = xi[:3] / dt, xi[3:] / dt
-                J = gtsam.Pose3.LogmapDerivative(step.relative)
+                J = np.linalg.inv(gtsam.Pose3.ExpmapDerivative(xi))  # Jacobian of Logmap (right perturbation)
                 cov = _SWAP @ (J @ step.covariance @ J.T) @ _SWAP / dt**2
                 cov = 0.5 * (cov + cov.T)
         return T["geometry_msgs/msg/TwistWithCovariance"](

@@ -284,7 +284,17 @@ def check_output_bag(out, bag_path, camera_frame):
     tw = m.twist.twist
     np.testing.assert_allclose([tw.angular.x, tw.angular.y, tw.angular.z], xi[:3], rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose([tw.linear.x, tw.linear.y, tw.linear.z], xi[3:], rtol=1e-6, atol=1e-9)
-    assert np.all(np.diag(np.array(m.twist.covariance).reshape(6, 6)) > 0)
+    # its covariance: sampled twists Log(T_ref,cur Exp(xi)) / dt, ROS order [linear, angular]
+    dt = t_cur[-1] - t_ref[-1]
+    T = gtsam.Pose3(rel[-1])
+    L = np.linalg.cholesky(covs[-1])
+    tw_s = np.array([gtsam.Pose3.Logmap(T.compose(gtsam.Pose3.Expmap(L @ rng.standard_normal(6)))) / dt
+                     for _ in range(20000)])
+    tw_s = np.concatenate([tw_s[:, 3:], tw_s[:, :3]], axis=1)
+    tw_s -= tw_s.mean(axis=0)
+    C = np.array(m.twist.covariance).reshape(6, 6)
+    eig = _whitened_eigs(C, tw_s.T @ tw_s / len(tw_s))
+    assert np.all(np.abs(eig - 1) < 0.06), eig
 
 
 def test_bag_bad_input_is_one_line_exit_2(fr1_desk_dir, tmp_path, capsys):
