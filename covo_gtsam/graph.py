@@ -49,7 +49,8 @@ right perturbation ``T_true = T * Exp([omega, v])``, to first order ``dt = R v``
 
 (:func:`covo_gtsam.covariance.tangent_to_ros`). It is not the SE(3) adjoint: the left tangent
 ``Log(T_true T^-1)`` has the translation part ``dt - dtheta x t``, the position error only at the
-origin, and far from it the two differ by an order of magnitude.
+origin: 3.7 m from it (``tests/test_graph.py``) the adjoint's position variances are 14 to 18
+times the sampled ones.
 :func:`from_pose_with_covariance` inverts the conversion exactly (up to floating point).
 """
 
