@@ -355,3 +355,20 @@ def test_bag_images_are_streamed_memory_stays_flat(fr1_rpy_dir, tmp_path):
     frame_bytes = 640 * 480 * (3 + 4)  # one colour and one depth message
     assert peaks[24] < 1.3 * peaks[6]
     assert peaks[24] < 12 * frame_bytes  # holding all 24 frames would take 24
+
+
+def test_evaluate_takes_bags_and_folders(fr1_desk_dir, tmp_path, capsys):
+    import csv
+
+    seq = TumSequence(fr1_desk_dir)
+    bag = write_bag(tmp_path / "desk.bag", seq, ros1=True, colour="rgb8", depth="32FC1", n=6)
+    assert main(["evaluate", str(bag), str(fr1_desk_dir), "--out", str(tmp_path / "study"), "--workers", "1",
+                 "--max-frames", "6", "--no-plots", "--quiet"]) == 0
+    with open(tmp_path / "study" / "summary.csv") as f:
+        rows = {r["sequence"]: r for r in csv.DictReader(f)}
+    assert set(rows) == {"desk", fr1_desk_dir.name}
+    assert rows["desk"]["frames"] == rows[fr1_desk_dir.name]["frames"] == "6"
+    assert (tmp_path / "study" / "desk" / "graph.g2o").is_file()
+    # the bag's frames differ from the folder's only by the grey conversion: close, not equal
+    a, b = float(rows["desk"]["rpe1_m"]), float(rows[fr1_desk_dir.name]["rpe1_m"])
+    assert abs(a - b) < 0.5 * b
