@@ -53,7 +53,7 @@ _SWAP = np.block([[np.zeros((3, 3)), np.eye(3)], [np.eye(3), np.zeros((3, 3))]])
 def require_rosbags():
     """Import ``rosbags``; :class:`ConfigError` with the install line when it is missing."""
     try:
-        import rosbags  # noqa: F401
+        import rosbags  # noqa: F401  (only whether it is installed)
     except ImportError:
         raise ConfigError('ROS bags need the rosbags package: pip install "covo-gtsam[ros]" '
                           "(or pip install rosbags)") from None

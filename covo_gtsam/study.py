@@ -196,11 +196,10 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
             bar.close()
     rows = [summary_row(n, m) for n, m in zip(names, metrics)]
     write_summary(out, rows)
-    if plots:
-        rows_plot = plot_summary(out, rows)
-        if rows_plot is None:
-            from .plots import PLOTS_MISSING
-            import sys
+    if plots and plot_summary(out, rows) is None:
+        import sys
 
-            print(PLOTS_MISSING, file=sys.stderr)
+        from .plots import PLOTS_MISSING
+
+        print(PLOTS_MISSING, file=sys.stderr)
     return rows
