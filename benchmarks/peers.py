@@ -5,7 +5,9 @@
 Peers (optional; skipped with a message when not installed): Open3D
 ``compute_rgbd_odometry`` (hybrid photometric + geometric, frame to frame) and OpenCV's
 ``cv2.Odometry`` (RGB-D). Prints time per frame pair (median, decoding excluded) and translational /
-rotational RPE over 1 and 30 frames against the ground truth, with ratios to covo.
+rotational RPE over 1 and 30 frames against the ground truth, with ratios to covo. Only pairs of
+frames that both have ground truth (``seq.gt_valid``: inside the motion-capture span, no gap) and
+no frame without it between them are scored.
 """
 
 from __future__ import annotations
@@ -17,8 +19,23 @@ import numpy as np
 
 from _common import sequence_from_command_line
 from covo_gtsam.frontend import load_depth, load_grey
-from covo_gtsam.metrics import rpe
+from covo_gtsam.metrics import relative_pose_errors, rpe_statistics
 from covo_gtsam.odometry import VisualOdometry
+
+
+def valid_rpe(gt: np.ndarray, valid: np.ndarray, poses: np.ndarray, delta: int) -> dict | None:
+    """RPE over ``delta`` frames pooled over the runs of consecutive frames with valid ground truth
+    (a frame without it, e.g. before the motion capture starts, has an identity placeholder and
+    must not be scored); None when no run is longer than ``delta``."""
+    valid = np.asarray(valid, bool)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], valid.astype(int), [0]])))
+    tr, rot = [], []
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a > delta:
+            t, r = relative_pose_errors(gt[a:b], poses[a:b], delta)
+            tr.append(t)
+            rot.append(r)
+    return rpe_statistics(np.concatenate(tr), np.concatenate(rot), delta) if tr else None
 
 
 def run_covo(seq, frames):
@@ -84,7 +101,9 @@ def main() -> None:
     for i in range(n):
         colour = cv2.imread(seq.rgb_paths[i])
         frames.append((load_grey(seq.rgb_paths[i]), colour, load_depth(seq.depth_paths[i])))
-    gt = seq.groundtruth[:n]
+    if seq.groundtruth is None or not seq.gt_valid[:n].any():
+        raise SystemExit(f"{seq.path}: no ground truth for the first {n} frames; nothing to score")
+    gt, valid = seq.groundtruth[:n], seq.gt_valid[:n]
     rows = {}
     for name, fn in (("covo", run_covo), ("open3d", run_open3d), ("opencv", run_opencv)):
         try:
@@ -92,16 +111,17 @@ def main() -> None:
         except ImportError as exc:
             print(f"{name}: not installed ({exc}); skipped")
             continue
-        rows[name] = (np.median(times) * 1000, rpe(gt, poses, 1), rpe(gt, poses, 30) if n > 30 else None)
+        rows[name] = (np.median(times) * 1000, valid_rpe(gt, valid, poses, 1), valid_rpe(gt, valid, poses, 30))
     base = rows["covo"]
     print(f"{n} frames of {seq.name}")
     print(f"{'method':<8} {'ms/pair':>8} {'RPE1 m':>8} {'RPE1 deg':>9} {'RPE30 m':>8} {'RPE30 deg':>9} "
           f"{'time/covo':>9} {'RPE30/covo':>10}")
+    nan = float("nan")
     for name, (ms, r1, r30) in rows.items():
-        r30t = r30["trans_rmse"] if r30 else float("nan")
-        r30r = r30["rot_rmse_deg"] if r30 else float("nan")
-        ratio = r30t / base[2]["trans_rmse"] if r30 else float("nan")
-        print(f"{name:<8} {ms:8.2f} {r1['trans_rmse']:8.4f} {r1['rot_rmse_deg']:9.3f} {r30t:8.4f} {r30r:9.3f} "
+        r1t, r1r = (r1["trans_rmse"], r1["rot_rmse_deg"]) if r1 else (nan, nan)
+        r30t, r30r = (r30["trans_rmse"], r30["rot_rmse_deg"]) if r30 else (nan, nan)
+        ratio = r30t / base[2]["trans_rmse"] if r30 and base[2] else nan
+        print(f"{name:<8} {ms:8.2f} {r1t:8.4f} {r1r:9.3f} {r30t:8.4f} {r30r:9.3f} "
               f"{ms / base[0]:9.2f} {ratio:10.2f}")
 
 

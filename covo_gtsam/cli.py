@@ -1,4 +1,4 @@
-"""Command line: ``covo run``, ``covo simulate``, ``covo analyze-noise``, ``covo calibrate``.
+"""Command line: ``covo run``, ``covo evaluate``, ``covo simulate``, ``covo analyze-noise``, ``covo calibrate``.
 
 Every failure the package knows about ends with exit code 2 and one line on stderr naming the
 file and the problem; no traceback. ``covo run`` that tracks no frame at all ends with exit code 3
@@ -102,9 +102,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         config = _replace(config, scale=args.scale)
     seq = _sequence(args)
     _check_config_fits(args, config, seq)
+    if args.bag_out:
+        from .ros_io import require_rosbags
+
+        require_rosbags()
     check_output_dir(args.out)
     result = run_sequence(
-        seq, args.out, config=config, max_frames=args.max_frames, plots=not args.no_plots, progress=not args.quiet
+        seq, args.out, config=config, max_frames=args.max_frames, plots=not args.no_plots, progress=not args.quiet,
+        bag_out=args.bag_out,
     )
     m = result.metrics
     fps = m["frames_per_second"]
@@ -116,6 +121,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if m.get("anees_translation") is not None and m.get("anees_rotation") is not None:
         line += f", ANEES t {m['anees_translation']:.2f} r {m['anees_rotation']:.2f}"
     print(line)
+    if getattr(seq, "groundtruth", None) is None:
+        print(f"{seq.name}: no ground truth; accuracy and consistency metrics skipped")
     if result.plot_files is None:
         _plots_missing()
     print(f"results in {result.out_dir}")
@@ -128,17 +135,37 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _load_config(args: argparse.Namespace):
-    """The odometry configuration of ``--config``, or the default one."""
+    """The odometry configuration of ``--config``, or the default one; a ``--camera`` file's
+    ``depth_scale`` replaces the configuration's."""
     from .odometry import OdometryConfig
 
-    return load_config_file(args.config) if args.config else OdometryConfig()
+    config = load_config_file(args.config) if args.config else OdometryConfig()
+    _, depth_scale = _camera(args)
+    return config if depth_scale is None else _replace(config, depth_scale=depth_scale)
+
+
+def _camera(args: argparse.Namespace):
+    """``(camera or None, depth scale or None)`` of ``--camera`` (a preset name or a camera file)."""
+    from .camera_file import resolve_camera
+
+    if not hasattr(args, "_camera_resolved"):
+        args._camera_resolved = resolve_camera(getattr(args, "camera", None))
+    return args._camera_resolved
 
 
 def _sequence(args: argparse.Namespace):
-    """The sequence folder of ``SEQ_DIR`` with the ``--camera`` preset, if given."""
+    """The sequence of ``SEQ`` (a TUM folder, or for ``covo run`` a ROS bag) with the ``--camera``, if given."""
+    from .datasets.rosbag import RosbagSequence, is_bag
     from .datasets.tum import TumSequence
 
-    return TumSequence(args.sequence, camera=args.camera)
+    camera, _ = _camera(args)
+    if is_bag(args.sequence):
+        if not hasattr(args, "rgb_topic"):
+            raise ConfigError(f"{args.sequence}: {args.command} reads TUM folders; ROS bags work with covo run "
+                              "and covo evaluate")
+        return RosbagSequence(args.sequence, camera=camera, rgb_topic=args.rgb_topic, depth_topic=args.depth_topic,
+                              camera_info_topic=args.camera_info_topic)
+    return TumSequence(args.sequence, camera=camera)
 
 
 def _check_config_fits(args: argparse.Namespace, config, seq) -> None:
@@ -171,7 +198,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             pixel_sigma=args.pixel_sigma, num_points=args.points,
             depth_range=(args.min_depth, args.max_depth),
         )
-        result = run_simulation(cfg, progress=not args.quiet)
+        if args.workers or args.scheduler:
+            from .simulation import run_simulation_parallel
+
+            result = run_simulation_parallel(cfg, workers=args.workers, scheduler=args.scheduler,
+                                             timeout=args.connect_timeout)
+        else:
+            result = run_simulation(cfg, progress=not args.quiet)
         summary = result.summary()
         write_json(out / "metrics.json", summary)
         if not args.no_plots:
@@ -188,12 +221,48 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .study import evaluate_sequences
+
+    config = _load_config(args).to_dict() if args.config else None
+    topics = {"rgb_topic": args.rgb_topic, "depth_topic": args.depth_topic,
+              "camera_info_topic": args.camera_info_topic}
+    if args.camera:
+        _camera(args)  # a bad --camera fails here, before any run
+    rows = evaluate_sequences(args.sequences, args.out, camera=args.camera, config=config,
+                              max_frames=args.max_frames, workers=args.workers, scheduler=args.scheduler,
+                              timeout=args.connect_timeout, plots=not args.no_plots, topics=topics,
+                              progress=not args.quiet)
+    for r in rows:
+        line = f"{r['sequence']}: {r['frames']} frames, {r['lost']} lost"
+        if r["rpe1_m"] is not None:
+            line += f", RPE1 {r['rpe1_m']:.4f} m"
+        if r["anees_t"] is not None:
+            line += f", ANEES t {r['anees_t']:.2f} r {r['anees_r']:.2f}"
+        print(line)
+    print(f"results in {args.out} (summary.csv, summary.md)")
+    return 0
+
+
+def _parallel_arguments(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument("--workers", type=_int_in(1, 256), metavar="N",
+                        help=f"local worker processes for the {what} (1: in this process)")
+    parser.add_argument("--scheduler", metavar="ADDR",
+                        help=f"run the {what} on the Dask distributed scheduler at ADDR, e.g. tcp://127.0.0.1:8786 "
+                        "(needs dask[distributed] here and on the workers)")
+    parser.add_argument("--connect-timeout", type=_float_in(maximum=600), default=10.0, metavar="S",
+                        help="seconds to wait for the scheduler (default 10)")
+
+
 def cmd_analyze_noise(args: argparse.Namespace) -> int:
     from .analysis import analyze_sequence, plot_noise
     from .io import write_json
     from .pipeline import check_output_dir
 
     seq = _sequence(args)
+    _, depth_scale = _camera(args)
+    if depth_scale is not None and depth_scale != 5000:
+        raise ConfigError(f"{args.camera}: analyze-noise reads TUM depth images (depth_scale 5000), got {depth_scale:g}")
     out = check_output_dir(args.out)
     with _lock_outputs(out, ["noise.json"], ("plots", ("noise.png",)), not args.no_plots):
         summary = analyze_sequence(seq, pixel_sigma=args.pixel_sigma, max_frames=args.max_frames,
@@ -265,11 +334,34 @@ def _plots_missing() -> None:
     print(PLOTS_MISSING, file=sys.stderr)
 
 
-def _sequence_arguments(parser: argparse.ArgumentParser, help: str) -> None:
-    """The sequence folder and ``--camera``, common to the commands that read a sequence."""
-    parser.add_argument("sequence", metavar="SEQ_DIR", help=help)
-    parser.add_argument("--camera", choices=["fr1", "fr2", "fr3"],
-                        help="camera preset (default: guessed from the folder name, e.g. 'freiburg1' -> fr1)")
+def _sequence_arguments(parser: argparse.ArgumentParser, help: str, bags: bool = False) -> None:
+    """The sequence and ``--camera`` (and with ``bags`` the topic options), common to the commands
+    that read a sequence."""
+    if bags:
+        parser.add_argument("sequence", metavar="SEQ", help=help)
+    else:
+        parser.add_argument("sequence", metavar="SEQ_DIR", help=help)
+    _camera_argument(parser)
+    if bags:
+        _topic_arguments(parser)
+
+
+def _camera_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--camera", metavar="NAME|FILE",
+                        help="camera preset fr1, fr2 or fr3, or a camera file: ROS camera_calibration YAML, or "
+                        "TOML/JSON with fx fy cx cy width height depth_scale [k1 k2 p1 p2 k3] (default: the bag's "
+                        "camera info, or guessed from the folder name, e.g. 'freiburg1' -> fr1)")
+
+
+def _topic_arguments(parser: argparse.ArgumentParser) -> None:
+    from .datasets.rosbag import DEFAULT_TOPICS
+
+    parser.add_argument("--rgb-topic", default=DEFAULT_TOPICS["rgb_topic"], metavar="TOPIC",
+                        help="ROS bags: colour image topic, rgb8/bgr8/mono8 (default %(default)s)")
+    parser.add_argument("--depth-topic", default=DEFAULT_TOPICS["depth_topic"], metavar="TOPIC",
+                        help="ROS bags: depth image topic, 32FC1 metres or 16UC1 millimetres (default %(default)s)")
+    parser.add_argument("--camera-info-topic", default=DEFAULT_TOPICS["camera_info_topic"], metavar="TOPIC",
+                        help="ROS bags: sensor_msgs/CameraInfo topic (default %(default)s)")
 
 
 def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT", plots: bool = True) -> None:
@@ -313,12 +405,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = _command(
         sub, "run",
-        help="run visual odometry on a TUM RGB-D sequence folder",
+        help="run visual odometry on a TUM RGB-D sequence folder or a ROS bag",
         description="Run visual odometry on a TUM RGB-D sequence folder (rgb.txt, depth.txt, rgb/, depth/, "
-        "optional groundtruth.txt) and write trajectory.txt (TUM format), relative.txt (relative poses with "
-        "6x6 covariances), metrics.json and plots/ into OUT.",
+        "optional groundtruth.txt) or a ROS bag (ROS 1 .bag file or ROS 2 bag folder; ground truth from /tf) "
+        "and write trajectory.txt (TUM format), relative.txt (relative poses with 6x6 covariances), graph.g2o "
+        "(pose graph), metrics.json and plots/ into OUT.",
     )
-    _sequence_arguments(run, "TUM RGB-D sequence folder")
+    _sequence_arguments(run, "TUM RGB-D sequence folder, ROS 1 .bag file or ROS 2 bag folder", bags=True)
     run.add_argument("--max-frames", type=_int_in(1), metavar="N",
                      help="process only the first N frames (default: all)")
     run.add_argument("--config", metavar="FILE", help="TOML or JSON settings (see README: configuration)")
@@ -326,6 +419,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--scale", type=_float_in(maximum=MAX_SCALE), metavar="PHI",
                      help="the thesis's covariance scale phi: multiplies each pair's point-transfer "
                      "covariance inside the estimator; the calibrated sensor terms are applied after (default 1)")
+    run.add_argument("--bag-out", choices=["ros1", "ros2"],
+                     help="also write the odometry as a ROS bag: OUT/odometry.bag (ros1) or OUT/odometry/ (ros2) "
+                     "with /covo/odometry (nav_msgs/Odometry) and /covo/relative (PoseWithCovarianceStamped)")
     _output_arguments(run)
     run.set_defaults(func=cmd_run)
 
@@ -351,8 +447,26 @@ def build_parser() -> argparse.ArgumentParser:
                      help="nearest depth (default 0.5 m)")
     sim.add_argument("--max-depth", type=_float_in(maximum=MAX_DEPTH), default=5.0, metavar="M",
                      help=f"farthest depth (default 5 m, at most {MAX_DEPTH:g} m)")
+    _parallel_arguments(sim, "Monte Carlo runs (same seed, same numbers)")
     _output_arguments(sim, "DIR")
     sim.set_defaults(func=cmd_simulate)
+
+    ev = _command(
+        sub, "evaluate",
+        help="run covo on many sequences (TUM folders or ROS bags) and summarise, locally or on Dask",
+        description="Run `covo run` on each sequence into DIR/<name>/ and write DIR/summary.csv, DIR/summary.md "
+        "(frames, lost, RPE 1 and 30 frames, ATE, ANEES, share of NEES above 9.35, frames/s per sequence) and "
+        "DIR/plots/summary.png. The runs go to a local process pool (default one per sequence, at most one per "
+        "core) or to a Dask distributed cluster; the numbers do not depend on where they ran.",
+    )
+    ev.add_argument("sequences", nargs="+", metavar="SEQ", help="TUM RGB-D folders, ROS 1 .bag files or ROS 2 bags")
+    _camera_argument(ev)
+    _topic_arguments(ev)
+    ev.add_argument("--max-frames", type=_int_in(1), metavar="N", help="only the first N frames of each (default: all)")
+    ev.add_argument("--config", metavar="FILE", help="TOML or JSON settings for every run (see README: configuration)")
+    _parallel_arguments(ev, "sequences")
+    _output_arguments(ev, "DIR")
+    ev.set_defaults(func=cmd_evaluate)
     noise = _command(
         sub, "analyze-noise",
         help="measure pixel and depth noise of matched inliers against ground truth (thesis 5.3.1)",

@@ -13,9 +13,16 @@ dimensionless). To first order at ``T = (R, q)``::
 so ``Q_tq = G Sigma G^T`` with ``G = [[0, R], [1/2 (qw I + [q_v]x), 0]]`` (rows ``t, q_v``,
 columns ``omega, v``). ``G`` is invertible while ``qw > 0`` (rotation below 180 degrees).
 
-ROS ``PoseWithCovariance`` orders ``[x y z rot_x rot_y rot_z]`` with the perturbation in the
-parent frame (left: ``T_true = Exp(xi') * T_est``); ``xi'_(rot, trans) = Ad(T) xi`` in GTSAM's
-order, so ``Sigma_ros = P Ad(T) Sigma Ad(T)^T P^T`` with ``P`` swapping the two 3-blocks.
+ROS ``PoseWithCovariance`` (REP 103; ``robot_localization``, ``tf`` users) orders
+``[x y z rot_x rot_y rot_z]``: the covariance of the position error ``dt = t_true - t`` (metres,
+parent frame) and of the small rotation ``dtheta`` about the parent's fixed axes
+(``R_true = Exp(dtheta) R``). For the right perturbation ``T_true = T * Exp([omega, v])``, to first
+order ``dt = R v`` and ``dtheta = R omega``, so::
+
+    Sigma_ros = B Sigma B^T,      B = [[0, R], [R, 0]]   (rows dt, dtheta; columns omega, v)
+
+This is not the SE(3) adjoint: the left tangent ``Log(T_true T^-1)`` has the translation part
+``dt - dtheta x t``, which is the position error only at the origin.
 
 Every function takes 6x6 finite matrices and ``gtsam.Pose3`` poses and raises
 :class:`~covo_gtsam.errors.InputError` for anything else (no NaN out of NaN in).
@@ -28,9 +35,6 @@ import numpy as np
 
 from .errors import InputError
 from .geometry import matrix_to_quat, skew
-
-_SWAP = np.block([[np.zeros((3, 3)), np.eye(3)], [np.eye(3), np.zeros((3, 3))]])
-
 
 def check_matrix(cov, name: str = "covariance", size: int = 6) -> np.ndarray:
     """``cov`` as a finite float (size, size) array; :class:`InputError` otherwise."""
@@ -94,18 +98,29 @@ def tq_to_tangent(cov_tq: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
     return Gi @ cov_tq @ Gi.T
 
 
+def ros_jacobian(pose: gtsam.Pose3) -> np.ndarray:
+    """``B = d(dt, dtheta) / d(omega, v) = [[0, R], [R, 0]]`` (6x6) at ``pose`` (module docstring)."""
+    R = _check_pose(pose).rotation().matrix()
+    B = np.zeros((6, 6))
+    B[:3, 3:] = R
+    B[3:, :3] = R
+    return B
+
+
 def tangent_to_ros(cov: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
-    """ROS ``PoseWithCovariance`` covariance ``[x y z rot_x rot_y rot_z]`` in the parent frame."""
+    """ROS ``PoseWithCovariance`` covariance ``[x y z rot_x rot_y rot_z]``: position error and small
+    rotations about the parent's fixed axes (see the module docstring)."""
     cov = check_matrix(cov)
-    A = _SWAP @ _check_pose(pose).AdjointMap()
-    return A @ cov @ A.T
+    B = ros_jacobian(pose)
+    return B @ cov @ B.T
 
 
 def ros_to_tangent(cov_ros: np.ndarray, pose: gtsam.Pose3) -> np.ndarray:
-    """GTSAM tangent covariance from a ROS ``PoseWithCovariance`` covariance; inverse of the above."""
+    """GTSAM tangent covariance from a ROS ``PoseWithCovariance`` covariance; inverse of the above
+    (``B^-1 = B^T``)."""
     cov_ros = check_matrix(cov_ros, "cov_ros")
-    A = np.linalg.inv(_SWAP @ _check_pose(pose).AdjointMap())
-    return A @ cov_ros @ A.T
+    B = ros_jacobian(pose)
+    return B.T @ cov_ros @ B
 
 
 def compose_covariance(T_a: gtsam.Pose3, cov_a: np.ndarray, T_b: gtsam.Pose3, cov_b: np.ndarray) -> np.ndarray:

@@ -7,11 +7,20 @@ Outputs in ``out_dir``:
 * ``relative.txt`` -- one line per estimated frame pair, ``t_ref t_cur tx ty tz qx qy qz qw``
   and the 36 covariance values row-major (T_ref,cur; GTSAM tangent ``[rx ry rz tx ty tz]``,
   right perturbation);
+* ``graph.g2o`` -- the pose graph in g2o's format (:mod:`covo_gtsam.g2o`): a vertex per tracked
+  frame, an edge with its information matrix per frame pair;
+* ``odometry.bag`` / ``odometry/`` -- with ``bag_out="ros1"`` / ``"ros2"``, the odometry as ROS
+  messages (:mod:`covo_gtsam.ros_io`);
 * ``metrics.json`` -- frames, lost frames, frames/s, and accuracy/consistency metrics when
   ground truth exists;
 * ``plots/`` -- PNG figures (unless disabled).
 
-Both text files are flushed line by line, so an interrupted run leaves valid files for the frames
+The sequence is a :class:`~covo_gtsam.datasets.tum.TumSequence` (image files, decoded by path) or
+any object with the same attributes and a ``loader(n)`` method returning a thread-safe function
+``i -> (grey, depth in metres)`` (e.g. :class:`~covo_gtsam.datasets.rosbag.RosbagSequence`, which
+streams the bag).
+
+The text files are flushed line by line, so an interrupted run leaves valid files for the frames
 processed so far. Decoding and feature extraction of the next frame run on a worker thread
 (OpenCV releases the GIL) while the current frame pair is solved on the main thread (GTSAM's
 Python callbacks stay there).
@@ -33,6 +42,7 @@ from .camera import Camera
 from .datasets.tum import TumSequence
 from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData, load_depth, load_grey
+from .g2o import G2oWriter
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
 from .odometry import OdometryConfig, OdometryStep, VisualOdometry
 from .validation import check_int
@@ -41,7 +51,7 @@ from .validation import check_int
 #: Frames decoded and prepared ahead on worker threads.
 PREFETCH = 2
 #: Files a run writes into its results folder (besides the figures of ``plots/``).
-RUN_FILES = ("trajectory.txt", "relative.txt", "metrics.json")
+RUN_FILES = ("trajectory.txt", "relative.txt", "graph.g2o", "metrics.json")
 
 
 @dataclass
@@ -113,16 +123,31 @@ def prepare_outputs(out: Path, files: Sequence[str], figures: tuple[str, Sequenc
             raise DatasetError(f"{path}: cannot remove the result of an earlier run ({exc.strerror or exc})") from exc
 
 
-def _load_frame(vo: VisualOdometry, rgb_path: str, depth_path: str, depth_scale: float,
-                depth_offset: float = 0.0) -> FrameData | CovoError:
+def _frame_loader(seq, n: int, depth_scale: float, camera: Camera):
+    """``i -> (grey, depth)`` for the frames of ``seq``: the sequence's own ``loader`` if it has one
+    (a bag), else the image files of a TUM folder (an image of another size than ``camera``'s is
+    an :class:`InputError` naming its file)."""
+    if hasattr(seq, "loader"):
+        return seq.loader(n)
+
+    def load(i: int):
+        grey = load_grey(seq.rgb_paths[i])
+        if grey.shape != (camera.height, camera.width):
+            raise InputError(f"{seq.rgb_paths[i]}: image is {grey.shape[1]}x{grey.shape[0]}, the camera's is "
+                             f"{camera.width}x{camera.height}")
+        return grey, load_depth(seq.depth_paths[i], depth_scale, shape=(camera.height, camera.width))
+
+    return load
+
+
+def _load_frame(vo: VisualOdometry, load, i: int, depth_offset: float = 0.0) -> FrameData | CovoError:
     """Decode and prepare one frame; errors are returned (the frame is then reported lost)."""
     cam = vo.camera
     try:
-        grey = load_grey(rgb_path)
-        if grey.shape != (cam.height, cam.width):
-            raise InputError(f"{rgb_path}: image is {grey.shape[1]}x{grey.shape[0]}, the camera's is "
-                             f"{cam.width}x{cam.height}")
-        depth = load_depth(depth_path, depth_scale, shape=(cam.height, cam.width))
+        item = load(i)
+        if isinstance(item, CovoError):
+            return item
+        grey, depth = item
         return vo.prepare(grey, depth, depth_offset)
     except CovoError as exc:
         return exc
@@ -137,11 +162,13 @@ def run_sequence(
     plots: bool = True,
     progress: bool = True,
     keep_error_bases: bool = False,
+    bag_out: str | None = None,
 ) -> RunResult:
     """Run :class:`VisualOdometry` over ``seq`` and write the results folder.
 
     ``camera`` (a :class:`Camera` or preset name) overrides ``seq.camera``; ``max_frames`` (an
-    integer >= 1, or None for all) limits the frames processed.
+    integer >= 1, or None for all) limits the frames processed; ``bag_out`` (``"ros1"``,
+    ``"ros2"`` or None) also writes the odometry as a ROS bag.
 
     The folder is checked before the first frame (``trajectory.txt``, ``relative.txt``,
     ``metrics.json`` and, with ``plots``, the figures of ``plots/`` must be writable) and the
@@ -163,12 +190,17 @@ def run_sequence(
         from .plots import RUN_PLOTS
 
         prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
-        return _run(vo, seq, out, config, max_frames, plots, progress)
+        return _run(vo, seq, out, config, max_frames, plots, progress, bag_out)
 
 
 def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig, max_frames: int | None,
-         plots: bool, progress: bool) -> RunResult:
+         plots: bool, progress: bool, bag_out: str | None) -> RunResult:
     """The frame loop and the results of :func:`run_sequence`, in a checked and locked folder."""
+    bag = None
+    if bag_out is not None:
+        from .ros_io import OdometryBagWriter
+
+        bag = OdometryBagWriter(out, bag_out, camera_frame=getattr(seq, "camera_frame", "camera"))
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     start = time.perf_counter()
 
@@ -178,32 +210,44 @@ def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig
 
         bar = tqdm(total=n, desc=seq.name, unit="frame", dynamic_ncols=True)
     lost_count = 0
+    index_of: dict[float, int] = {}
     with TrajectoryWriter(out / "trajectory.txt") as traj_w, RelativePoseWriter(out / "relative.txt") as rel_w, \
-            ThreadPoolExecutor(max_workers=PREFETCH) as pool:
+            G2oWriter(out / "graph.g2o") as g2o_w, ThreadPoolExecutor(max_workers=PREFETCH) as pool:
+        load = _frame_loader(seq, n, config.depth_scale, vo.camera)
+
         def submit(i: int):
             stamps = getattr(seq, "depth_timestamps", None)
             offset = 0.0 if stamps is None else float(stamps[i] - seq.timestamps[i])
-            return pool.submit(_load_frame, vo, seq.rgb_paths[i], seq.depth_paths[i], config.depth_scale, offset)
+            return pool.submit(_load_frame, vo, load, i, offset)
 
         pending = deque(submit(i) for i in range(min(PREFETCH, n)))
-        for i in range(n):
-            frame = pending.popleft().result()
-            if i + PREFETCH < n:
-                pending.append(submit(i + PREFETCH))
-            t = float(seq.timestamps[i])
-            if isinstance(frame, CovoError):
-                step = vo.mark_lost(t, str(frame))
-            else:
-                step = vo.register_frame(frame, timestamp=t)
-            if step.tracked:
-                traj_w.write(t, step.pose.matrix())
-                if step.status == "tracked":
-                    rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance)
-            else:
-                lost_count += 1
-            if bar is not None:
-                bar.set_postfix(lost=lost_count, pairs=step.num_pairs, refresh=False)
-                bar.update(1)
+        try:
+            for i in range(n):
+                frame = pending.popleft().result()
+                if i + PREFETCH < n:
+                    pending.append(submit(i + PREFETCH))
+                t = float(seq.timestamps[i])
+                if isinstance(frame, CovoError):
+                    step = vo.mark_lost(t, str(frame))
+                else:
+                    step = vo.register_frame(frame, timestamp=t)
+                if step.tracked:
+                    traj_w.write(t, step.pose.matrix())
+                    g2o_w.vertex(i, step.pose.matrix())
+                    index_of[t] = i
+                    if step.status == "tracked":
+                        rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance)
+                        g2o_w.edge(index_of[step.ref_timestamp], i, step.relative.matrix(), step.covariance)
+                    if bag is not None:
+                        bag.write(step)
+                else:
+                    lost_count += 1
+                if bar is not None:
+                    bar.set_postfix(lost=lost_count, pairs=step.num_pairs, refresh=False)
+                    bar.update(1)
+        finally:
+            if bag is not None:
+                bag.close()
     if bar is not None:
         bar.close()
     elapsed = time.perf_counter() - start

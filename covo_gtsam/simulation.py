@@ -211,17 +211,24 @@ class SimulationResult:
         }
 
 
-def run_simulation(cfg: SimulationConfig, progress: bool = False) -> SimulationResult:
-    """Run ``cfg.runs`` Monte Carlo trials; deterministic for a given ``cfg.seed``."""
+def simulate_runs(cfg: SimulationConfig, start: int = 0, stop: int | None = None, progress: bool = False):
+    """Runs ``start`` to ``stop - 1`` of :func:`run_simulation`: ``(errors, covariances, iterations,
+    dropped)`` for those runs, the same numbers as in the whole study. The random stream is the
+    study's: the scene and the noise of the runs before ``start`` are drawn and discarded."""
+    stop = cfg.runs if stop is None else stop
     rng = np.random.default_rng(cfg.seed)
     scene = make_scene(cfg, rng)
     model = PointNoiseModel(pixel=PixelNoise(cfg.pixel_sigma, cfg.pixel_sigma), depth=cfg.depth_model)
+    for _ in range(start):
+        noisy_measurements(scene.X0, scene.camera, model, rng)
+        noisy_measurements(scene.X1, scene.camera, model, rng)
     T_true = gtsam.Pose3(scene.T01)
-    errors = np.empty((cfg.runs, 6))
-    covs = np.empty((cfg.runs, 6, 6))
-    iters = np.empty(cfg.runs, dtype=int)
-    dropped = np.zeros(cfg.runs, dtype=int)
-    runs = range(cfg.runs)
+    m = stop - start
+    errors = np.empty((m, 6))
+    covs = np.empty((m, 6, 6))
+    iters = np.empty(m, dtype=int)
+    dropped = np.zeros(m, dtype=int)
+    runs = range(m)
     if progress:
         from tqdm import tqdm
 
@@ -237,6 +244,31 @@ def run_simulation(cfg: SimulationConfig, progress: bool = False) -> SimulationR
         errors[i] = gtsam.Pose3.Logmap(res.pose.between(T_true))
         covs[i] = res.covariance
         iters[i] = res.iterations
+    return errors, covs, iters, dropped
+
+
+def simulation_result(cfg: SimulationConfig, errors: np.ndarray, covs: np.ndarray, iters: np.ndarray,
+                      dropped: np.ndarray) -> SimulationResult:
+    """The :class:`SimulationResult` (with NEES) of all runs' errors, covariances, iterations, drops."""
     nees_rot = np.einsum("ni,ni->n", errors[:, :3], np.linalg.solve(covs[:, :3, :3], errors[:, :3, None])[..., 0])
     nees_tr = np.einsum("ni,ni->n", errors[:, 3:], np.linalg.solve(covs[:, 3:, 3:], errors[:, 3:, None])[..., 0])
     return SimulationResult(cfg, errors, covs, nees_rot, nees_tr, iters, dropped)
+
+
+def run_simulation(cfg: SimulationConfig, progress: bool = False) -> SimulationResult:
+    """Run ``cfg.runs`` Monte Carlo trials; deterministic for a given ``cfg.seed``."""
+    return simulation_result(cfg, *simulate_runs(cfg, progress=progress))
+
+
+def run_simulation_parallel(cfg: SimulationConfig, workers: int | None = None, scheduler: str | None = None,
+                            chunks: int | None = None, timeout: float | None = None) -> SimulationResult:
+    """:func:`run_simulation` split into ``chunks`` blocks of consecutive runs (default: two per
+    worker) run by :func:`covo_gtsam.parallel.map_tasks`; the same numbers as the serial study."""
+    from .parallel import CONNECT_TIMEOUT, default_workers, map_tasks
+
+    n_workers = workers or (2 if scheduler else default_workers(cfg.runs))
+    chunks = max(1, min(cfg.runs, chunks or 2 * n_workers))
+    edges = np.linspace(0, cfg.runs, chunks + 1).round().astype(int)
+    parts = map_tasks(simulate_runs, [(cfg, int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a],
+                      workers=workers, scheduler=scheduler, timeout=timeout or CONNECT_TIMEOUT)
+    return simulation_result(cfg, *(np.concatenate(x) for x in zip(*parts)))

@@ -1,0 +1,183 @@
+"""ROS bag output of an odometry run (``covo run --bag-out ros1|ros2``), with the pure-Python
+``rosbags`` package (optional extra ``ros``).
+
+``OUT/odometry.bag`` (ROS 1) or the folder ``OUT/odometry/`` (ROS 2, sqlite3) holds two topics,
+one message per tracked frame, stamped with the frame's colour timestamp:
+
+``/covo/odometry`` -- ``nav_msgs/Odometry``
+    ``header.frame_id`` ``odom``: the first tracked camera frame (the ``world`` of
+    ``trajectory.txt``), fixed and continuous as REP 105 asks of ``odom``. ``child_frame_id`` is the
+    camera frame (the colour images' ``frame_id`` when the input is a bag, else ``camera``). Both
+    are optical frames (z forward, x right, y down, REP 103's ``_optical`` suffix convention): put
+    a static transform ahead of ``robot_localization`` to get a body frame.
+    ``pose`` is ``T_odom,cam`` with ``step.pose_covariance`` (composed to first order along the
+    trajectory) converted by :func:`covo_gtsam.covariance.tangent_to_ros`: covariance of the
+    position error and of small rotations about the fixed axes of ``odom``, order
+    ``[x y z rot_x rot_y rot_z]``. ``twist`` is the camera's mean body twist over the frame pair,
+    ``Log(T_ref,cur) / dt`` (in ``child_frame_id``, as ROS requires), with covariance
+    ``J Sigma J^T / dt^2`` reordered to ``[vx vy vz wx wy wz]`` (``J`` the derivative of Pose3's
+    Logmap, ``Sigma`` the pair's covariance). The first frame of the run and the first of a new
+    segment have a zero twist with zero covariance (no pair).
+
+``/covo/relative`` -- ``geometry_msgs/PoseWithCovarianceStamped``
+    One per estimated pair: the pose ``T_ref,cur`` (points of the current frame into the
+    reference frame) with its covariance converted like the pose above, about the reference
+    frame's axes. ``header.stamp`` is the current frame's time and ``header.frame_id`` names the
+    reference frame as ``<camera frame>@<t_ref>`` (``t_ref`` in seconds, 6 decimals), since with
+    keyframes the reference is not always the previous frame.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from .covariance import tangent_to_ros
+from .errors import ConfigError, DatasetError
+from .geometry import matrix_to_quat
+
+__all__ = ["BAG_FORMATS", "OdometryBagWriter", "bag_output_path", "require_rosbags"]
+
+BAG_FORMATS = ("ros1", "ros2")
+ODOMETRY_TOPIC = "/covo/odometry"
+RELATIVE_TOPIC = "/covo/relative"
+ODOM_FRAME = "odom"
+
+_SWAP = np.block([[np.zeros((3, 3)), np.eye(3)], [np.eye(3), np.zeros((3, 3))]])
+
+
+def require_rosbags():
+    """Import ``rosbags``; :class:`ConfigError` with the install line when it is missing."""
+    try:
+        import rosbags  # noqa: F401  (only whether it is installed)
+    except ImportError:
+        raise ConfigError('ROS bags need the rosbags package: pip install "covo-gtsam[ros]" '
+                          "(or pip install rosbags)") from None
+
+
+def bag_output_path(out_dir: str | os.PathLike, fmt: str) -> Path:
+    """``OUT/odometry.bag`` (ros1) or ``OUT/odometry`` (ros2)."""
+    if fmt not in BAG_FORMATS:
+        raise ConfigError(f"bag format must be one of {', '.join(BAG_FORMATS)}, got {fmt!r}")
+    return Path(out_dir) / ("odometry.bag" if fmt == "ros1" else "odometry")
+
+
+def _stamp(t: float) -> tuple[int, int]:
+    ns = int(round(float(t) * 1e9))
+    return ns // 1_000_000_000, ns % 1_000_000_000
+
+
+class OdometryBagWriter:
+    """Writes ``/covo/odometry`` and ``/covo/relative`` (see the module docstring) message by message.
+
+    ``write(step)`` takes each :class:`~covo_gtsam.odometry.OdometryStep` in order (lost steps are
+    skipped); use as a context manager, or call :meth:`close`.
+    """
+
+    def __init__(self, out_dir: str | os.PathLike, fmt: str, camera_frame: str = "camera") -> None:
+        require_rosbags()
+        from rosbags.typesys import Stores, get_typestore
+
+        self.fmt = fmt
+        self.path = bag_output_path(out_dir, fmt)
+        self.camera_frame = camera_frame or "camera"
+        if self.path.is_dir() and (self.path / "metadata.yaml").is_file():
+            shutil.rmtree(self.path)
+        elif self.path.is_file():
+            self.path.unlink()
+        elif self.path.exists():
+            raise DatasetError(f"{self.path}: exists and is not a bag written by covo; remove it first")
+        if fmt == "ros1":
+            from rosbags.rosbag1 import Writer
+
+            self.ts = get_typestore(Stores.ROS1_NOETIC)
+            self._writer = Writer(self.path)
+            self._serialize = self.ts.serialize_ros1
+        else:
+            from rosbags.rosbag2 import Writer
+
+            self.ts = get_typestore(Stores.ROS2_HUMBLE)
+            self._writer = Writer(self.path, version=8)
+            self._serialize = self.ts.serialize_cdr
+        try:
+            self._writer.open()
+        except Exception as exc:  # rosbags raises its own writer errors
+            raise DatasetError(f"{self.path}: cannot write the bag ({exc})") from exc
+        self._odom = self._writer.add_connection(ODOMETRY_TOPIC, "nav_msgs/msg/Odometry", typestore=self.ts)
+        self._rel = self._writer.add_connection(RELATIVE_TOPIC, "geometry_msgs/msg/PoseWithCovarianceStamped",
+                                                typestore=self.ts)
+        self._seq = 0
+        self._closed = False
+
+    # -- message building ---------------------------------------------------------------------
+    def _header(self, t: float, frame_id: str):
+        T = self.ts.types
+        sec, nsec = _stamp(t)
+        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
+        if self.fmt == "ros1":
+            return T["std_msgs/msg/Header"](seq=self._seq, stamp=stamp, frame_id=frame_id)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+
+    def _pose_with_covariance(self, pose: gtsam.Pose3, cov: np.ndarray):
+        T = self.ts.types
+        M = pose.matrix()
+        q = matrix_to_quat(M[:3, :3])
+        ros = tangent_to_ros(np.asarray(cov, dtype=float), pose)
+        ros = 0.5 * (ros + ros.T)
+        return T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=float(M[0, 3]), y=float(M[1, 3]), z=float(M[2, 3])),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]),
+                                                              w=float(q[3]))),
+            covariance=np.ascontiguousarray(ros.reshape(36), dtype=np.float64))
+
+    def _twist(self, step):
+        T = self.ts.types
+        vec = T["geometry_msgs/msg/Vector3"]
+        w = np.zeros(3)
+        v = np.zeros(3)
+        cov = np.zeros((6, 6))
+        if step.status == "tracked" and step.relative is not None:
+            dt = float(step.timestamp - step.ref_timestamp)
+            if dt > 0:
+                xi = gtsam.Pose3.Logmap(step.relative)
+                w, v = xi[:3] / dt, xi[3:] / dt
+                J = np.linalg.inv(gtsam.Pose3.ExpmapDerivative(xi))  # Jacobian of Logmap (right perturbation)
+                cov = _SWAP @ (J @ step.covariance @ J.T) @ _SWAP / dt**2
+                cov = 0.5 * (cov + cov.T)
+        return T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=T["geometry_msgs/msg/Twist"](linear=vec(x=float(v[0]), y=float(v[1]), z=float(v[2])),
+                                               angular=vec(x=float(w[0]), y=float(w[1]), z=float(w[2]))),
+            covariance=np.ascontiguousarray(cov.reshape(36), dtype=np.float64))
+
+    def write(self, step) -> None:
+        """Write the messages of one odometry step (nothing for a lost frame)."""
+        if not step.tracked:
+            return
+        T = self.ts.types
+        ns = int(round(float(step.timestamp) * 1e9))
+        odom = T["nav_msgs/msg/Odometry"](
+            header=self._header(step.timestamp, ODOM_FRAME), child_frame_id=self.camera_frame,
+            pose=self._pose_with_covariance(step.pose, step.pose_covariance), twist=self._twist(step))
+        self._writer.write(self._odom, ns, self._serialize(odom, "nav_msgs/msg/Odometry"))
+        if step.status == "tracked":
+            rel = T["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                header=self._header(step.timestamp, f"{self.camera_frame}@{step.ref_timestamp:.6f}"),
+                pose=self._pose_with_covariance(step.relative, step.covariance))
+            self._writer.write(self._rel, ns, self._serialize(rel, "geometry_msgs/msg/PoseWithCovarianceStamped"))
+        self._seq += 1
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._writer.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

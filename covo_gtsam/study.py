@@ -1,0 +1,205 @@
+"""``covo evaluate``: ``covo run`` on many sequences (TUM folders or ROS bags), one results folder each,
+and a summary table.
+
+Each sequence runs as one task of :func:`covo_gtsam.parallel.map_tasks` (serially, on a local
+process pool, or on a Dask cluster) into ``OUT/<name>/``, exactly as ``covo run`` would; the
+summary rows come from each run's metrics:
+
+==================  ===========================================================================
+column              meaning
+==================  ===========================================================================
+sequence            the sequence's name (its results folder)
+frames, lost        frames processed, frames without a pose
+rpe1_m, rpe30_m     translational RPE RMSE (m) over 1 and 30 frames (empty without ground truth)
+ate_m               ATE RMSE (m) after alignment
+anees_t, anees_r    ANEES of translation and rotation (3 = consistent)
+above_9.35_t/_r     share of frame pairs whose NEES exceeds chi2(3) 97.5 % = 9.35
+frames_per_s        speed of that run (the only column that depends on where it ran)
+==================  ===========================================================================
+
+Written: ``summary.csv``, ``summary.md`` and ``plots/summary.png`` (with matplotlib).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+
+from .errors import ConfigError, DatasetError
+
+__all__ = ["COLUMNS", "evaluate_sequences", "run_one", "summary_row"]
+
+COLUMNS = ("sequence", "frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r",
+           "above_9.35_t", "above_9.35_r", "frames_per_s")
+
+
+def _get(m: dict, *keys):
+    for k in keys:
+        if not isinstance(m, dict) or m.get(k) is None:
+            return None
+        m = m[k]
+    return m
+
+
+def summary_row(name: str, metrics: dict) -> dict:
+    """The summary row of one run's ``metrics.json`` dict (None where a metric is missing)."""
+    return {
+        "sequence": name,
+        "frames": metrics.get("frames"),
+        "lost": metrics.get("lost_frames"),
+        "rpe1_m": _get(metrics, "rpe_1", "trans_rmse"),
+        "rpe30_m": _get(metrics, "rpe_30", "trans_rmse"),
+        "ate_m": _get(metrics, "ate", "rmse"),
+        "anees_t": metrics.get("anees_translation"),
+        "anees_r": metrics.get("anees_rotation"),
+        "above_9.35_t": metrics.get("share_nees_translation_above_chi2_975"),
+        "above_9.35_r": metrics.get("share_nees_rotation_above_chi2_975"),
+        "frames_per_s": metrics.get("frames_per_second"),
+    }
+
+
+def _open_sequence(path: str, camera: str | None, topics: dict):
+    from .camera_file import resolve_camera
+    from .datasets.rosbag import RosbagSequence, is_bag
+    from .datasets.tum import TumSequence
+
+    cam, scale = resolve_camera(camera)
+    if is_bag(path):
+        return RosbagSequence(path, camera=cam, **topics), scale
+    return TumSequence(path, camera=cam), scale
+
+
+def run_one(path: str, out_dir: str, camera: str | None = None, config: dict | None = None,
+            max_frames: int | None = None, plots: bool = False, topics: dict | None = None,
+            bag_out: str | None = None) -> dict:
+    """``covo run`` of one sequence into ``out_dir``; returns its ``metrics.json`` dict. Plain
+    arguments only (it runs on other processes and machines)."""
+    import dataclasses
+
+    from .odometry import OdometryConfig
+    from .pipeline import run_sequence
+
+    seq, scale = _open_sequence(path, camera, topics or {})
+    cfg = OdometryConfig.from_dict(config) if config else OdometryConfig()
+    if scale is not None:
+        cfg = dataclasses.replace(cfg, depth_scale=scale)
+    result = run_sequence(seq, out_dir, config=cfg, max_frames=max_frames, plots=plots, progress=False,
+                          bag_out=bag_out)
+    return result.metrics
+
+
+def _names(paths: list[str]) -> list[str]:
+    """Results-folder names: the sequence names, made unique with ``_2``, ``_3``, ..."""
+    seen: dict[str, int] = {}
+    out = []
+    for p in paths:
+        base = Path(os.path.abspath(p)).name
+        base = base[:-4] if base.lower().endswith(".bag") else base
+        seen[base] = seen.get(base, 0) + 1
+        out.append(base if seen[base] == 1 else f"{base}_{seen[base]}")
+    return out
+
+
+def _check_inputs(paths: list[str]) -> None:
+    from .datasets.rosbag import is_bag
+
+    for p in paths:
+        if not (is_bag(p) or (Path(p) / "rgb.txt").is_file()):
+            raise DatasetError(f"{p}: neither a TUM sequence folder (rgb.txt) nor a ROS bag (.bag file or "
+                               "folder with metadata.yaml)")
+
+
+def _fmt(v, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return ""
+    if isinstance(v, float):
+        return f"{v:.{digits}g}" if abs(v) < 1e-3 and v != 0 else f"{v:.{digits}f}"
+    return str(v)
+
+
+def write_summary(out: Path, rows: list[dict]) -> None:
+    """``summary.csv`` (full precision) and ``summary.md`` (rounded) of the rows."""
+    with open(out / "summary.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=COLUMNS)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: "" if r[k] is None else (repr(r[k]) if isinstance(r[k], float) else r[k]) for k in COLUMNS})
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for r in rows:
+        lines.append("| " + " | ".join(_fmt(r[k], 1 if k == "frames_per_s" else 4) for k in COLUMNS) + " |")
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
+
+
+def plot_summary(out: Path, rows: list[dict]) -> Path | None:
+    """``plots/summary.png``: RPE over 1 frame and ANEES per sequence; None without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    names = [r["sequence"] for r in rows]
+    x = range(len(rows))
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(max(6, 1.2 * len(rows) + 4), 3.5))
+    a1.bar(x, [r["rpe1_m"] or 0 for r in rows])
+    a1.set_ylabel("RPE 1 frame, translation RMSE (m)")
+    w = 0.4
+    a2.bar([i - w / 2 for i in x], [r["anees_t"] or 0 for r in rows], w, label="translation")
+    a2.bar([i + w / 2 for i in x], [r["anees_r"] or 0 for r in rows], w, label="rotation")
+    a2.axhline(3.0, color="k", lw=0.8, ls="--", label="consistent (3)")
+    a2.set_ylabel("ANEES")
+    a2.legend(fontsize=8)
+    for a in (a1, a2):
+        a.set_xticks(list(x))
+        a.set_xticklabels(names, rotation=20, ha="right", fontsize=7)
+    fig.tight_layout()
+    (out / "plots").mkdir(exist_ok=True)
+    path = out / "plots" / "summary.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str | None = None,
+                       config: dict | None = None, max_frames: int | None = None, workers: int | None = None,
+                       scheduler: str | None = None, timeout: float | None = None, plots: bool = True,
+                       topics: dict | None = None, progress: bool = False) -> list[dict]:
+    """Run every sequence (see the module docstring) and write the summary; returns the rows.
+
+    Raises:
+        DatasetError: a path is neither a TUM folder nor a bag; the first failing run's error.
+        ConfigError: the scheduler cannot be reached.
+    """
+    from .parallel import CONNECT_TIMEOUT, map_tasks
+    from .pipeline import check_output_dir
+
+    paths = [os.path.abspath(os.fspath(p)) for p in paths]
+    if not paths:
+        raise ConfigError("evaluate needs at least one sequence")
+    _check_inputs(paths)
+    out = check_output_dir(Path(out_dir))
+    names = _names(paths)
+    args = [(p, str(out / n), camera, config, max_frames, plots, topics) for p, n in zip(paths, names)]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(args), desc="evaluate", unit="sequence")
+    try:
+        metrics = map_tasks(run_one, args, workers=workers, scheduler=scheduler, timeout=timeout or CONNECT_TIMEOUT,
+                            progress=(lambda k: bar.update(k - bar.n)) if bar is not None else None)
+    finally:
+        if bar is not None:
+            bar.close()
+    rows = [summary_row(n, m) for n, m in zip(names, metrics)]
+    write_summary(out, rows)
+    if plots and plot_summary(out, rows) is None:
+        import sys
+
+        from .plots import PLOTS_MISSING
+
+        print(PLOTS_MISSING, file=sys.stderr)
+    return rows

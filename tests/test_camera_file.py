@@ -1,0 +1,131 @@
+"""Camera files (--camera FILE): ROS camera_calibration YAML, TOML and JSON."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+
+import numpy as np
+import pytest
+
+from covo_gtsam.camera import Camera
+from covo_gtsam.camera_file import load_camera_file
+from covo_gtsam.cli import main
+from covo_gtsam.errors import ConfigError
+from covo_gtsam.io import load_tum_trajectory
+
+FR1 = {"fx": 517.3, "fy": 516.5, "cx": 318.6, "cy": 255.3, "k1": 0.2624, "k2": -0.9531, "p1": -0.0054,
+       "p2": 0.0026, "k3": 1.1633, "width": 640, "height": 480, "depth_scale": 5000}
+
+FR1_YAML = """\
+image_width: 640
+image_height: 480
+camera_name: kinect_fr1
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [517.3, 0, 318.6, 0, 516.5, 255.3, 0, 0, 1]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [517.3, 0, 318.6, 0, 0, 516.5, 255.3, 0, 0, 0, 1, 0]
+"""
+
+
+def _same_camera(cam: Camera, ref: Camera) -> None:
+    assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.dist, cam.width, cam.height) == (
+        ref.fx, ref.fy, ref.cx, ref.cy, ref.dist, ref.width, ref.height)
+
+
+def test_json_toml_yaml_read_the_published_fr1_values(tmp_path):
+    fr1 = Camera.preset("fr1")
+    (tmp_path / "c.json").write_text(json.dumps(FR1))
+    cam, scale = load_camera_file(tmp_path / "c.json")
+    _same_camera(cam, fr1)
+    assert scale == 5000
+    (tmp_path / "c.yaml").write_text(FR1_YAML)
+    pytest.importorskip("yaml")
+    cam, scale = load_camera_file(tmp_path / "c.yaml")
+    _same_camera(cam, fr1)
+    assert scale is None and cam.name == "kinect_fr1"
+    if sys.version_info >= (3, 11):
+        (tmp_path / "c.toml").write_text("".join(f"{k} = {v}\n" for k, v in {**FR1, "depth_scale": 1000}.items()))
+        cam, scale = load_camera_file(tmp_path / "c.toml")
+        _same_camera(cam, fr1)
+        assert scale == 1000
+
+
+def test_camera_file_gives_the_trajectory_of_the_fr1_preset(sample_dir, tmp_path, capsys):
+    # a folder whose name names no camera: the preset is not guessed, the file says it all
+    seq = tmp_path / "some_other_dataset"
+    shutil.copytree(sample_dir, seq)
+    (tmp_path / "fr1.json").write_text(json.dumps(FR1))
+    assert main(["run", str(seq), "--out", str(tmp_path / "preset"), "--camera", "fr1", "--max-frames", "12",
+                 "--no-plots", "--quiet"]) == 0
+    assert main(["run", str(seq), "--out", str(tmp_path / "file"), "--camera", str(tmp_path / "fr1.json"),
+                 "--max-frames", "12", "--no-plots", "--quiet"]) == 0
+    t0, P0 = load_tum_trajectory(tmp_path / "preset" / "trajectory.txt")
+    t1, P1 = load_tum_trajectory(tmp_path / "file" / "trajectory.txt")
+    assert len(t0) >= 10
+    np.testing.assert_array_equal(t0, t1)
+    np.testing.assert_allclose(P1, P0, atol=1e-9)
+    # without --camera the folder stays a clear error
+    capsys.readouterr()
+    assert main(["run", str(seq), "--out", str(tmp_path / "none"), "--max-frames", "5", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--camera" in err
+
+
+def test_camera_file_depth_scale_reaches_the_run(sample_dir, tmp_path):
+    """depth_scale 2500 doubles every depth: the trajectory's translation doubles, the rotation stays."""
+    seq = tmp_path / "other"
+    shutil.copytree(sample_dir, seq)
+    (tmp_path / "a.json").write_text(json.dumps(FR1))
+    (tmp_path / "b.json").write_text(json.dumps({**FR1, "depth_scale": 2500}))
+    for name in ("a", "b"):
+        assert main(["run", str(seq), "--out", str(tmp_path / name), "--camera", str(tmp_path / f"{name}.json"),
+                     "--max-frames", "8", "--no-plots", "--quiet"]) == 0
+    _, Pa = load_tum_trajectory(tmp_path / "a" / "trajectory.txt")
+    _, Pb = load_tum_trajectory(tmp_path / "b" / "trajectory.txt")
+    assert len(Pa) == len(Pb) >= 6
+    moved = np.linalg.norm(Pa[-1, :3, 3])
+    assert moved > 1e-3
+    assert np.linalg.norm(Pb[-1, :3, 3]) / moved == pytest.approx(2.0, rel=0.2)
+
+
+@pytest.mark.parametrize("content, needle", [
+    ({k: v for k, v in FR1.items() if k not in ("fx", "depth_scale")}, "missing keys fx, depth_scale"),
+    ({**FR1, "fz": 1.0}, "unknown keys fz"),
+    ({**FR1, "fx": "big"}, "fx must be a finite number"),
+    ({**FR1, "width": 640.5}, "width must be a positive integer"),
+    ({**FR1, "fx": -1.0}, "focal lengths must be positive"),
+])
+def test_bad_camera_file_is_one_line_exit_2(sample_dir, tmp_path, capsys, content, needle):
+    f = tmp_path / "cam.json"
+    f.write_text(json.dumps(content))
+    with pytest.raises(ConfigError, match=needle):
+        load_camera_file(f)
+    assert main(["run", str(sample_dir), "--out", str(tmp_path / "o"), "--camera", str(f), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and needle in err and str(f) in err
+
+
+def test_yaml_missing_keys_and_unknown_camera(tmp_path, capsys, sample_dir):
+    pytest.importorskip("yaml")
+    f = tmp_path / "cam.yaml"
+    f.write_text(FR1_YAML.replace("image_width: 640\n", ""))
+    with pytest.raises(ConfigError, match="missing keys image_width"):
+        load_camera_file(f)
+    assert main(["run", str(sample_dir), "--out", str(tmp_path / "o"), "--camera", "fr9", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "fr9" in err

@@ -1,0 +1,78 @@
+"""covo evaluate and covo simulate on a local pool and on Dask: the same numbers as serially."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+
+from covo_gtsam.cli import main
+
+NUMBERS = ("frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r", "above_9.35_t", "above_9.35_r")
+
+
+def _rows(out):
+    with open(out / "summary.csv") as f:
+        return {r["sequence"]: {k: r[k] for k in NUMBERS} for r in csv.DictReader(f)}
+
+
+def _evaluate(seqs, out, *extra):
+    assert main(["evaluate", *map(str, seqs), "--out", str(out), "--max-frames", "12", "--quiet", *extra]) == 0
+    return _rows(out)
+
+
+def test_evaluate_serial_pool_and_dask_give_the_same_numbers(fr1_rpy_dir, fr1_desk_dir, tmp_path, capsys):
+    seqs = [fr1_rpy_dir, fr1_desk_dir]
+    serial = _evaluate(seqs, tmp_path / "serial", "--workers", "1")
+    assert set(serial) == {fr1_rpy_dir.name, fr1_desk_dir.name}
+    rpy = serial[fr1_rpy_dir.name]
+    assert rpy["frames"] == "12" and float(rpy["rpe1_m"]) > 0 and float(rpy["anees_t"]) > 0
+    assert serial[fr1_desk_dir.name]["frames"] == "9"
+    # each row is that sequence's covo run
+    m = json.loads((tmp_path / "serial" / fr1_rpy_dir.name / "metrics.json").read_text())
+    assert float(rpy["rpe1_m"]) == m["rpe_1"]["trans_rmse"]
+    assert (tmp_path / "serial" / "summary.md").read_text().count("\n") == 4
+    assert (tmp_path / "serial" / "plots" / "summary.png").is_file()
+
+    assert _evaluate(seqs, tmp_path / "pool", "--workers", "2", "--no-plots") == serial
+
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp://", dashboard_address=":0",
+                      host="127.0.0.1") as cluster:
+        assert _evaluate(seqs, tmp_path / "dask", "--scheduler", cluster.scheduler_address, "--no-plots") == serial
+    for name in serial:
+        a = (tmp_path / "serial" / name / "relative.txt").read_text()
+        assert a == (tmp_path / "dask" / name / "relative.txt").read_text()
+
+
+def test_simulate_on_workers_and_dask_same_seed_same_numbers(tmp_path):
+    base = ["simulate", "--runs", "24", "--points", "60", "--seed", "5", "--no-plots", "--quiet"]
+    assert main(base + ["--out", str(tmp_path / "serial")]) == 0
+    serial = json.loads((tmp_path / "serial" / "metrics.json").read_text())
+    assert main(base + ["--out", str(tmp_path / "pool"), "--workers", "2"]) == 0
+    assert json.loads((tmp_path / "pool" / "metrics.json").read_text()) == serial
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp://", dashboard_address=":0",
+                      host="127.0.0.1") as cluster:
+        assert main(base + ["--out", str(tmp_path / "dask"), "--scheduler", cluster.scheduler_address]) == 0
+    assert json.loads((tmp_path / "dask" / "metrics.json").read_text()) == serial
+
+
+def test_unreachable_scheduler_and_bad_sequence_are_one_line_exit_2(fr1_desk_dir, tmp_path, capsys):
+    pytest.importorskip("dask.distributed")
+    assert main(["evaluate", str(fr1_desk_dir), "--out", str(tmp_path / "a"), "--scheduler", "tcp://127.0.0.1:1",
+                 "--connect-timeout", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "tcp://127.0.0.1:1" in err
+    assert main(["simulate", "--runs", "4", "--out", str(tmp_path / "b"), "--scheduler", "tcp://127.0.0.1:1",
+                 "--connect-timeout", "1", "--quiet", "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "scheduler" in err
+    assert main(["evaluate", str(fr1_desk_dir), str(tmp_path), "--out", str(tmp_path / "c"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "neither a TUM sequence folder" in err
