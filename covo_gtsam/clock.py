@@ -10,7 +10,8 @@ grows with the camera's speed.
 :class:`FrameClock` fits ``t_k = t_0 + P k`` by least squares to the stamps of the last ``window``
 frames (the frame count ``k`` advancing by ``round(dt / P)`` across dropped frames) and reports
 each new stamp's offset ``r = t - (t_0 + P k)`` from that fit, causally, as frames arrive. Stamps
-that do not follow a regular clock (offsets beyond a quarter of the period) get no offset, and
+that do not follow a regular clock (scattering by more than 15 % of the period, or off it by more
+than a quarter period) get no offset, and
 neither do the first frames of a run: their stamps keep their full jitter (the ``stamp_jitter``
 term of the covariance).
 """
@@ -70,8 +71,10 @@ class FrameClock:
             if not (0.5 * self.nominal < period < 2.0 * self.nominal):
                 return None  # no regular clock in these stamps
             self.period_s = float(period)
-        r = float(t[-1] - (phase + period * k[-1]))
-        if not abs(r) < 0.25 * period:
+        resid = t - (phase + period * k)
+        r = float(resid[-1])
+        # stamps that scatter by more than 15 % of the period (5 ms at 30 Hz) follow no regular clock
+        if not (abs(r) < 0.25 * period and np.std(resid) < 0.15 * period):
             return None
         self.samples = len(t)
         return r

@@ -44,17 +44,20 @@ __all__ = [
 
 RELATIVE_HEADER = (
     "# covo-gtsam relative poses, one line per frame pair:\n"
-    "# t_ref t_cur tx ty tz qx qy qz qw c00 c01 ... c55\n"
+    "# t_ref t_cur tx ty tz qx qy qz qw c00 c01 ... c55 quality\n"
     "# t_ref, t_cur: timestamps (s) of the reference and current frames\n"
     "# pose: T_ref,cur (m, unit quaternion qx qy qz qw) maps points of the current camera frame into the\n"
     "#   reference camera frame\n"
     "# c00 ... c55: 6x6 covariance, row-major, in GTSAM's Pose3 tangent order [rx ry rz tx ty tz] (rad, m),\n"
     "#   right (body) perturbation T_true = T_est * Exp(xi)\n"
+    "# quality: the pair's integrity statistic, about chi2(6) for a typical pair of the run, larger for a pair\n"
+    "#   whose depth-free estimates disagree with it (flagged above the configured threshold, 50 by default;\n"
+    "#   its covariance then covers the disagreement); -1 when it could not be formed\n"
 )
 TRAJECTORY_HEADER = "# timestamp tx ty tz qx qy qz qw (pose T_world,cam: maps camera-frame points into the world frame)\n"
 
 _TUM_COLS = 8
-_REL_COLS = 2 + 7 + 36
+_REL_COLS = 2 + 7 + 36 + 1
 
 
 def data_lines(path: Path):
@@ -90,8 +93,9 @@ def file_problem(path: str | os.PathLike) -> str | None:
     return None
 
 
-def _load_rows(path: str | os.PathLike, ncols: int, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """Numeric rows (N, ncols) of a whitespace-separated file and their line numbers (N,).
+def _load_rows(path: str | os.PathLike, ncols: int, what: str, optional: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Numeric rows (N, ncols) of a whitespace-separated file and their line numbers (N,); lines may
+    lack the last ``optional`` columns (an older layout), which then read as NaN.
 
     '#' comment lines and blank lines are skipped; other malformed lines raise :class:`DatasetError`.
     """
@@ -99,8 +103,9 @@ def _load_rows(path: str | os.PathLike, ncols: int, what: str) -> tuple[np.ndarr
     rows, line_nos = [], []
     for no, s in data_lines(p):
         parts = s.replace(",", " ").split()
-        if len(parts) != ncols:
+        if not ncols - optional <= len(parts) <= ncols:
             raise DatasetError(f"{p}:{no}: expected {ncols} values ({what}), got {len(parts)}")
+        parts += ["nan"] * (ncols - len(parts))
         try:
             rows.append([float(x) for x in parts])
             line_nos.append(no)
@@ -150,11 +155,14 @@ def load_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     return rows[:, 0].copy(), _poses_from_rows(path, rows, line_nos, 1)
 
 
-def format_relative_line(t_ref: float, t_cur: float, T: np.ndarray, cov: np.ndarray) -> str:
-    """One relative-pose line (with newline): stamps (s), T_ref,cur (4x4) and its 6x6 covariance.
+def format_relative_line(t_ref: float, t_cur: float, T: np.ndarray, cov: np.ndarray, quality: float | None = None
+                         ) -> str:
+    """One relative-pose line (with newline): stamps (s), T_ref,cur (4x4), its 6x6 covariance and the
+    pair's integrity statistic ``quality`` (-1 when None or not finite).
 
     Stamps ``%.6f``, pose values ``%.9f``, covariance entries ``%.9e`` (they are often < 1e-6).
     """
+    quality = -1.0 if quality is None or not np.isfinite(quality) else float(quality)
     row = pose_to_tum(_check_pose(T))
     cov = np.asarray(cov, dtype=float)
     if cov.shape != (6, 6):
@@ -164,7 +172,7 @@ def format_relative_line(t_ref: float, t_cur: float, T: np.ndarray, cov: np.ndar
         + " ".join(f"{v:.9f}" for v in row)
         + " "
         + " ".join(f"{v:.9e}" for v in cov.reshape(36))
-        + "\n"
+        + f" {quality:.4g}\n"
     )
 
 
@@ -173,11 +181,14 @@ def write_relative_header(fileobj: IO[str]) -> None:
     fileobj.write(RELATIVE_HEADER)
 
 
-def load_relative_poses(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``t_ref`` (N,), ``t_cur`` (N,) in s, T_ref,cur (N, 4, 4) and covariances (N, 6, 6) of a relative file."""
-    rows, line_nos = _load_rows(path, _REL_COLS, "t_ref t_cur tx ty tz qx qy qz qw c00 ... c55")
+def load_relative_poses(path: str | os.PathLike, with_quality: bool = False):
+    """``t_ref`` (N,), ``t_cur`` (N,) in s, T_ref,cur (N, 4, 4) and covariances (N, 6, 6) of a relative
+    file; with ``with_quality`` also the quality column (N,; -1 where not formed, NaN in files
+    written before it existed)."""
+    rows, line_nos = _load_rows(path, _REL_COLS, "t_ref t_cur tx ty tz qx qy qz qw c00 ... c55 quality", optional=1)
     poses = _poses_from_rows(path, rows, line_nos, 2)
-    return rows[:, 0].copy(), rows[:, 1].copy(), poses, rows[:, 9:45].reshape(-1, 6, 6).copy()
+    out = rows[:, 0].copy(), rows[:, 1].copy(), poses, rows[:, 9:45].reshape(-1, 6, 6).copy()
+    return (*out, rows[:, 45].copy()) if with_quality else out
 
 
 class _LineWriter:
@@ -221,12 +232,13 @@ class TrajectoryWriter(_LineWriter):
 
 
 class RelativePoseWriter(_LineWriter):
-    """Relative-pose file written line by line: ``write(t_ref, t_cur, T_ref_cur, cov)``; a context manager."""
+    """Relative-pose file written line by line: ``write(t_ref, t_cur, T_ref_cur, cov, quality)``; a
+    context manager."""
 
     header = RELATIVE_HEADER
 
-    def write(self, t_ref: float, t_cur: float, T: np.ndarray, cov: np.ndarray) -> None:
-        self._write(format_relative_line(t_ref, t_cur, T, cov))
+    def write(self, t_ref: float, t_cur: float, T: np.ndarray, cov: np.ndarray, quality: float | None = None) -> None:
+        self._write(format_relative_line(t_ref, t_cur, T, cov, quality))
 
 
 def _plain(obj):

@@ -606,6 +606,15 @@ class VisualOdometry:
                                               error_bases=step.error_bases if self.keep_error_bases else None))
         return step
 
+    def self_calibration(self) -> dict:
+        """What the run learnt about its sensor without ground truth: the frame clock's period (s),
+        the scatter of the stamps around it (s.d. of the clock offsets, s) and the integrity
+        statistic's scale (median over the run's pairs / median of chi2(6))."""
+        offsets = [s.clock_offset for s in self.steps if s.clock_samples]
+        return {"frame_period_s": self._clock.period_s,
+                "stamp_jitter_s": float(np.std(offsets)) if len(offsets) > 2 else None,
+                "integrity_scale": self._integrity.scale}
+
     # -- results -------------------------------------------------------------------------------
     @property
     def tracked_steps(self) -> list[OdometryStep]:

@@ -236,7 +236,7 @@ def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig
                     g2o_w.vertex(i, step.pose.matrix())
                     index_of[t] = i
                     if step.status == "tracked":
-                        rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance)
+                        rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance, step.quality)
                         g2o_w.edge(index_of[step.ref_timestamp], i, step.relative.matrix(), step.covariance)
                     if bag is not None:
                         bag.write(step)
@@ -255,6 +255,7 @@ def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig
     from .evaluation import evaluate_run
 
     metrics = evaluate_run(vo.steps, seq, elapsed)
+    metrics["self_calibration"] = vo.self_calibration()
     write_json(out / "metrics.json", metrics)
     result = RunResult(out, metrics, vo.steps)
     if plots:

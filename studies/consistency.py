@@ -18,6 +18,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from covo_gtsam.calibration import ERROR_TERMS  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
 from covo_gtsam.odometry import OdometryConfig  # noqa: E402
@@ -30,12 +31,17 @@ SIM_VARIANTS = {
     "thesis, phi = 16": dict(weighting="thesis", scale=16.0),
 }
 #: the per-point model alone: no sensor terms (correlation factor 1, no frame term)
-POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0)
+POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
+                   **{name: 0.0 for name in ERROR_TERMS.values()})
 #: the thesis's real-data setting: 8 px, its weighting, the published depth model, nothing else
 THESIS_MODEL = dict(POINTS_ONLY, pixel_sigma=8.0, weighting="thesis", depth_sigma_scale=1.0, rolling_shutter_s=0.0)
 REAL_VARIANTS = {
-    "default (consistent, 2 px, sensor terms, rolling-shutter compensation)": OdometryConfig(),
+    "default (consistent, 2 px, frame clock, sensor and frame-level terms, rolling-shutter compensation, integrity check)":
+        OdometryConfig(),
     "default without rolling-shutter compensation": OdometryConfig(rolling_shutter_s=0.0),
+    "default without the frame clock": OdometryConfig(frame_clock=False),
+    "default without the frame-level terms": OdometryConfig(**{name: 0.0 for name in ERROR_TERMS.values()}),
+    "default without the integrity check": OdometryConfig(integrity_threshold=1e300),
     "default with the published depth model (depth_sigma_scale 1)": OdometryConfig(depth_sigma_scale=1.0),
     "default, keyframe mode": OdometryConfig(keyframes=True),
     "consistent, 2 px, per-point model only": OdometryConfig(**POINTS_ONLY),
@@ -207,86 +213,6 @@ def _cells(err, cov) -> str:
             f"{log_likelihood(err, cov):.2f}")
 
 
-def calibration_tables(data: Path, pairs: dict) -> list[str]:
-    """Fit of the sensor terms on the calibration half, and checks on pairs it has not seen."""
-    from covo_gtsam.calibration import fit_sensor_terms, frame_covariance, sensor_covariance
-
-    ff, kf = CALIBRATION_RUNS["frame to frame"], CALIBRATION_RUNS["keyframe"]
-    lines = ["## Sensor terms: fit and check", ""]
-    if (ff, CALIBRATION_SEQUENCE) not in pairs:
-        return lines + [f"(needs {CALIBRATION_SEQUENCE} under {data})", ""]
-    import tempfile
-
-    tmp = Path(tempfile.mkdtemp(prefix="covo-study-"))
-    for s in sorted(p for p in (data / "tum").iterdir() if (p / "rgb.txt").is_file()):
-        cfg = OdometryConfig(**POINTS_ONLY, keyframes=True)
-        res = run_sequence(TumSequence(s), tmp / s.name, config=cfg, plots=False, progress=False)
-        pairs[(kf, s.name)] = pair_errors(TumSequence(s), res.steps, cfg)
-    last = CALIBRATION_LAST_FRAME
-    cal = pairs[(ff, CALIBRATION_SEQUENCE)]
-    train = cal["end"] <= last
-    fits = {"frame term only (kappa = 1)": fit_sensor_terms(cal["err"][train], cal["cov"][train],
-                                                            fit_correlation_factor=False),
-            "kappa and frame term": fit_sensor_terms(cal["err"][train], cal["cov"][train])}
-    d = OdometryConfig()
-    lines += [f"Maximum-likelihood fits (`covo_gtsam.calibration.fit_sensor_terms`) on the {int(train.sum())} "
-              f"consecutive pairs ending in frames 1-{last} of {CALIBRATION_SEQUENCE}, run with the per-point model "
-              "alone and everything else default:", "",
-              "| model | kappa | rotation per axis | translation per axis | log-likelihood per pair |",
-              "|---|---|---|---|---|"]
-    for name, f in fits.items():
-        lines.append(f"| {name} | {f.correlation_factor:.2f} | {f.frame_sigma_rot_deg:.3f} deg | "
-                     f"{1e3 * f.frame_sigma_trans_m:.2f} mm | {f.log_likelihood:.2f} |")
-    lines += [f"| shipped defaults (the fit, rounded) | {d.correlation_factor:g} | {d.frame_sigma_rot_deg:g} deg | "
-              f"{1e3 * d.frame_sigma_trans_m:g} mm | |", ""]
-
-    def model(fit, p, law="k^2"):
-        s_r = np.deg2rad(fit.frame_sigma_rot_deg)
-        if law == "k^2":  # the shipped law
-            return sensor_covariance(p["cov"], fit.correlation_factor, s_r, fit.frame_sigma_trans_m, p["k"])
-        # translation variance growing like a random walk (k s_t^2 = (sqrt(k))^2 s_t^2) instead
-        return (sensor_covariance(p["cov"], fit.correlation_factor, s_r, 0.0, p["k"])
-                + frame_covariance(0.0, fit.frame_sigma_trans_m, np.sqrt(p["k"])))
-
-    def subsets(run):
-        out = []
-        for (variant, seq), p in sorted(pairs.items()):
-            if variant != run:
-                continue
-            if seq == CALIBRATION_SEQUENCE:
-                first = p["end"] <= last
-                held = p["end"] - p["k"] >= last  # both frames in the other half
-                out += [(f"{seq}, pairs ending in frames 1-{last} (fit)", p, first),
-                        (f"{seq}, frames {last}-{p['end'].max()} (held out)", p, held)]
-            else:
-                out.append((f"{seq} (held out)", p, np.ones(len(p["k"]), bool)))
-        return out
-
-    ff_sets = subsets(ff)
-    lines += ["Consecutive pairs: ANEES translation / rotation; share above 9.35; mean log-likelihood per pair "
-              "(higher is better; it rewards covariances that follow the errors from pair to pair).", "",
-              "| model | " + " | ".join(n for n, _, _ in ff_sets) + " |", "|---" * (len(ff_sets) + 1) + "|"]
-    rows = {"per-point model only": lambda p: p["cov"]}
-    rows.update({name: (lambda p, f=f: model(f, p)) for name, f in fits.items()})
-    for name, build in rows.items():
-        lines.append(f"| {name} | " + " | ".join(_cells(p["err"][m], build(p)[m]) for _, p, m in ff_sets) + " |")
-    kf_sets = subsets(kf)
-    f = fits["kappa and frame term"]
-    lines += ["", "Keyframe pairs (1 to "
-              f"{max(int(p['k'].max()) for _, p, _ in kf_sets)} frame intervals; the fit above, which saw "
-              "consecutive pairs only), for two laws of the translation term over k intervals:", "",
-              "| translation variance | " + " | ".join(n.replace(" (fit)", "") for n, _, _ in kf_sets) + " |",
-              "|---" * (len(kf_sets) + 1) + "|"]
-    for law, label in (("k", "k s_t^2 (random walk)"), ("k^2", "k^2 s_t^2 (persistent; default)")):
-        lines.append(f"| {label} | " + " | ".join(_cells(p["err"][m], model(f, p, law)[m]) for _, p, m in kf_sets)
-                     + " |")
-    return lines + [""]
-
-
-#: grid of depth_sigma_scale values for the depth-noise section
-DEPTH_SCALES = (1.0, 2.0, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 6.0, 8.0)
-
-
 def depth_scale_table(data: Path) -> list[str]:
     """Accuracy over depth_sigma_scale: chosen on the calibration half, checked on the rest."""
     import dataclasses
@@ -382,7 +308,9 @@ def main() -> None:
     pairs: dict = {}
     lines += real_tables(args.data, fig_dir, pairs)
     lines += depth_scale_table(args.data)
-    lines += calibration_tables(args.data, pairs)
+    lines += ["## Sensor terms", "", "The fit of the sensor terms and its cross-validation (both halves of the shared fr1_rpy "
+              "frames, fr1_desk) are in [cross_validation.md](cross_validation.md) "
+              "(`python studies/cross_validation.py`).", ""]
     lines += chain_tables(pairs)
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")

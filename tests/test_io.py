@@ -72,7 +72,7 @@ def test_relative_round_trip(tmp_path, random_trajectory):
     text = path.read_text().splitlines()
     header = [line for line in text if line.startswith("#")]
     assert header and "T_ref,cur" in " ".join(header) and "[rx ry rz tx ty tz]" in " ".join(header)
-    assert all(len(line.split()) == 45 for line in text if not line.startswith("#"))
+    assert all(len(line.split()) == 46 for line in text if not line.startswith("#"))  # 45 + quality
     t_ref, t_cur, P, C = load_relative_poses(path)
     np.testing.assert_allclose(t_ref, stamps[:-1], atol=1e-6)
     np.testing.assert_allclose(t_cur, stamps[1:], atol=1e-6)
@@ -156,3 +156,25 @@ def test_write_json_failure_keeps_old_file(tmp_path):
         write_json(path, {"bad": object()})
     assert json.loads(path.read_text()) == {"ok": 1}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json"]
+
+
+def test_relative_file_quality_column_round_trip_and_older_files(tmp_path):
+    """The quality column is written (-1 where not formed, never NaN) and read back; files of the
+    45-column layout still load, their quality NaN."""
+    from covo_gtsam.io import RelativePoseWriter, load_relative_poses
+
+    T, C = np.eye(4), np.eye(6) * 1e-6
+    path = tmp_path / "relative.txt"
+    with RelativePoseWriter(path) as w:
+        w.write(0.0, 0.1, T, C, 4.25)
+        w.write(0.1, 0.2, T, C, None)
+        w.write(0.2, 0.3, T, C, float("nan"))
+    assert "nan" not in path.read_text().lower()
+    *_, q = load_relative_poses(path, with_quality=True)
+    np.testing.assert_allclose(q, [4.25, -1.0, -1.0])
+    old = tmp_path / "old.txt"
+    old.write_text("".join(" ".join(line.split()[:45]) + "\n" for line in path.read_text().splitlines()
+                           if not line.startswith("#")))
+    t_ref, t_cur, poses, covs, q_old = load_relative_poses(old, with_quality=True)
+    assert len(t_ref) == 3 and np.isnan(q_old).all()
+    np.testing.assert_allclose(covs, [C] * 3)
