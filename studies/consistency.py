@@ -213,6 +213,10 @@ def _cells(err, cov) -> str:
             f"{log_likelihood(err, cov):.2f}")
 
 
+#: grid of depth_sigma_scale values for the depth-noise section
+DEPTH_SCALES = (1.0, 2.0, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 6.0, 8.0)
+
+
 def depth_scale_table(data: Path) -> list[str]:
     """Accuracy over depth_sigma_scale: chosen on the calibration half, checked on the rest."""
     import dataclasses

@@ -3,7 +3,8 @@
     python studies/cross_validation.py [--data ../shared/data]
 
 The odometry runs once per sequence with the per-point model alone (frame to frame, everything
-else default). The sensor terms (kappa, frame term, timing term) are fitted by maximum likelihood
+else default). The sensor terms (kappa, the frame term and frame-level terms; the stamp-jitter
+prior held at its default) are fitted by maximum likelihood
 (`covo_gtsam.calibration.fit_sensor_terms`) on the consecutive pairs of one half of the shared
 fr1_rpy frames and checked on the other half and on fr1_desk, both ways round. Reported per
 check: ANEES translation / rotation, share of NEES above 9.35, largest NEES, 30-pair chains.
@@ -28,15 +29,16 @@ from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors  # noqa: E402
 from covo_gtsam.odometry import OdometryConfig  # noqa: E402
-from covo_gtsam.calibration import ERROR_TERMS  # noqa: E402
+from covo_gtsam.calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS  # noqa: E402
 from covo_gtsam.pipeline import run_sequence, stacked_bases  # noqa: E402
 
 RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
 POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
                    **{name: 0.0 for name in ERROR_TERMS.values()})
 #: covariance models compared: the frame-level terms each fits besides kappa and the frame term
-MODELS = {"kappa + frame term": (), "+ timing": ("timing",), "+ timing, depth scale": ("timing", "depth_scale"),
-          "+ all frame-level terms": tuple(ERROR_TERMS)}
+MODELS = {"kappa + frame term": (), "+ timing": ("timing",), "+ timing, rolling shutter (default)": DEFAULT_TERMS,
+          "+ timing, rolling shutter, depth scale, depth time": ("timing", "rolling_shutter", "depth_scale",
+                                                                 "depth_time")}
 CHAIN = 30
 
 
@@ -49,12 +51,18 @@ def per_point_pairs(data: Path, name: str, **overrides) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False, keep_error_bases=True)
     lookup = ground_truth_lookup(seq)
-    pairs = [s for s in run.steps if s.status == "tracked" and s.velocity is not None
+    # as covo calibrate: consecutive pairs with ground truth, placed by the frame clock, not flagged
+    clocked = {s.timestamp for s in run.steps if s.clock_samples or not cfg.frame_clock}
+    pairs = [s for s in run.steps if s.status == "tracked" and s.velocity is not None and not s.flagged
+             and s.timestamp in clocked and s.ref_timestamp in clocked
              and cfg.frame_intervals(s.timestamp - s.ref_timestamp) == 1
              and s.ref_timestamp in lookup and s.timestamp in lookup]
     T_est, T_true, covs = relative_ground_truth(pairs, lookup)
     index = {t: i for i, t in enumerate(seq.timestamps)}
-    return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "bases": stacked_bases(pairs),
+    default = OdometryConfig()
+    bases = stacked_bases(pairs)
+    fixed = sum(getattr(default, ERROR_TERMS[k]) ** 2 * bases[k] for k in PRIOR_TERMS)
+    return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "bases": bases, "fixed": fixed,
             "end": np.array([index[s.timestamp] for s in pairs]), "T_est": T_est, "T_true": T_true}
 
 
@@ -64,7 +72,7 @@ def subset(p: dict, mask: np.ndarray) -> dict:
 
 def model_covs(fit, p: dict) -> np.ndarray:
     return sensor_covariance(p["cov"], fit.correlation_factor, np.deg2rad(fit.frame_sigma_rot_deg),
-                             fit.frame_sigma_trans_m, 1, p["bases"], fit.sigmas)
+                             fit.frame_sigma_trans_m, 1, p["bases"], fit.sigmas) + p["fixed"]
 
 
 def chain_anees(p: dict, covs: np.ndarray, w: int = CHAIN) -> tuple[float, float]:
@@ -118,7 +126,8 @@ def tables(data: Path) -> list[str]:
         for fit_name, m in halves.items():
             train = subset(rpy, m)
             for model, names in MODELS.items():
-                fit = fit_sensor_terms(train["err"], train["cov"], bases={n: train["bases"][n] for n in names})
+                fit = fit_sensor_terms(train["err"], train["cov"], bases={n: train["bases"][n] for n in names},
+                                       fixed=train["fixed"])
                 for other, mo in halves.items():
                     if other != fit_name:
                         lines.append(f"| {fit_name[:1]} | {model} | {fit_row(fit)} | {other[:1]} (held out) | "
