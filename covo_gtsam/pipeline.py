@@ -301,26 +301,41 @@ def calibrate_sequence(
     if seq.groundtruth is None:
         raise DatasetError(f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
     config = config or OdometryConfig()
-    priors = {k: getattr(config, ERROR_TERMS[k]) for k in ERROR_TERMS if k in PRIOR_TERMS}
+    priors = {k: getattr(config, ERROR_TERMS[k]) for k in PRIOR_TERMS}
     no_terms = {name: 0.0 for name in ERROR_TERMS.values()}
     config = dataclasses.replace(config, correlation_factor=1.0, frame_sigma_rot_deg=0.0,
                                  frame_sigma_trans_m=0.0, keyframes=False, **no_terms)
     result = run_sequence(seq, out_dir, config=config, max_frames=max_frames, plots=False, progress=progress,
                           keep_error_bases=True)
     lookup = ground_truth_lookup(seq)
-    clocked = {s.timestamp for s in result.steps if s.clock_samples or not config.frame_clock}
-    consecutive = [s for s in result.steps if s.status == "tracked" and s.velocity is not None and not s.flagged
-                   and s.timestamp in clocked and s.ref_timestamp in clocked
-                   and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1
-                   and s.ref_timestamp in lookup and s.timestamp in lookup]
+    consecutive = calibration_pairs(result.steps, lookup, config)
     T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
     if len(T_est) < 10:
         raise InputError(f"{seq.path}: the fit needs at least 10 consecutive tracked frame pairs with usable ground "
                          f"truth at both frames, got {len(T_est)} (of {len(consecutive)} consecutive tracked pairs)")
-    fixed = sum(sigma**2 * B for k, B in stacked_bases(consecutive, priors).items() for sigma in [priors[k]])
     return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs,
                             bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),
-                            fixed=fixed if priors else None), result
+                            fixed=prior_covariances(consecutive, priors)), result
+
+
+def calibration_pairs(steps, lookup: dict, config: OdometryConfig) -> list[OdometryStep]:
+    """The steps a fit of the sensor terms uses: tracked consecutive pairs (one frame interval) with a
+    velocity and ground truth at both frames (``lookup``: stamp -> pose), not flagged by the integrity
+    check, both frames placed by the frame clock (when it is on)."""
+    clocked = {s.timestamp for s in steps if s.clock_samples or not config.frame_clock}
+    return [s for s in steps if s.status == "tracked" and s.velocity is not None and not s.flagged
+            and s.timestamp in clocked and s.ref_timestamp in clocked
+            and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1
+            and s.ref_timestamp in lookup and s.timestamp in lookup]
+
+
+def prior_covariances(steps, priors: dict[str, float]) -> np.ndarray | None:
+    """``sum_j sigma_j^2 B_j`` (N, 6, 6) of the prior terms ``priors`` (name -> sigma) over ``steps``
+    (None without priors): what a fit holds fixed."""
+    if not priors:
+        return None
+    bases = stacked_bases(steps, priors)
+    return sum(sigma**2 * bases[name] for name, sigma in priors.items())
 
 
 def stacked_bases(steps, terms=None) -> dict[str, np.ndarray]:

@@ -30,7 +30,7 @@ from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # 
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors  # noqa: E402
 from covo_gtsam.odometry import OdometryConfig  # noqa: E402
 from covo_gtsam.calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS  # noqa: E402
-from covo_gtsam.pipeline import run_sequence, stacked_bases  # noqa: E402
+from covo_gtsam.pipeline import calibration_pairs, prior_covariances, run_sequence, stacked_bases  # noqa: E402
 
 RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
 POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
@@ -51,18 +51,12 @@ def per_point_pairs(data: Path, name: str, **overrides) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False, keep_error_bases=True)
     lookup = ground_truth_lookup(seq)
-    # as covo calibrate: consecutive pairs with ground truth, placed by the frame clock, not flagged
-    clocked = {s.timestamp for s in run.steps if s.clock_samples or not cfg.frame_clock}
-    pairs = [s for s in run.steps if s.status == "tracked" and s.velocity is not None and not s.flagged
-             and s.timestamp in clocked and s.ref_timestamp in clocked
-             and cfg.frame_intervals(s.timestamp - s.ref_timestamp) == 1
-             and s.ref_timestamp in lookup and s.timestamp in lookup]
+    pairs = calibration_pairs(run.steps, lookup, cfg)  # the pairs covo calibrate fits
     T_est, T_true, covs = relative_ground_truth(pairs, lookup)
     index = {t: i for i, t in enumerate(seq.timestamps)}
-    default = OdometryConfig()
-    bases = stacked_bases(pairs)
-    fixed = sum(getattr(default, ERROR_TERMS[k]) ** 2 * bases[k] for k in PRIOR_TERMS)
-    return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "bases": bases, "fixed": fixed,
+    priors = {k: getattr(OdometryConfig(), ERROR_TERMS[k]) for k in PRIOR_TERMS}
+    return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "bases": stacked_bases(pairs),
+            "fixed": prior_covariances(pairs, priors),
             "end": np.array([index[s.timestamp] for s in pairs]), "T_est": T_est, "T_true": T_true}
 
 
