@@ -1,8 +1,39 @@
-"""covo-gtsam: error-aware RGB-D visual odometry on GTSAM."""
+"""covo-gtsam: error-aware RGB-D visual odometry on GTSAM.
 
+The public API, importable from the package itself (loaded on first use, so ``covo --help`` stays
+quick)::
+
+    from covo_gtsam import Camera, OdometryConfig, VisualOdometry, estimate_relative_pose
+"""
+
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
 try:
     __version__ = version("covo-gtsam")
 except PackageNotFoundError:  # pragma: no cover - running from a source tree without installing
     __version__ = "unknown"
+
+#: public name -> module that holds it
+_PUBLIC = {
+    "Camera": "camera",
+    "OdometryConfig": "odometry",
+    "OdometryStep": "odometry",
+    "VisualOdometry": "odometry",
+    "FrontendConfig": "frontend",
+    "estimate_relative_pose": "estimator",
+    "RelativePoseResult": "estimator",
+    "TumSequence": "datasets.tum",
+    "run_sequence": "pipeline",
+    "CovoError": "errors",
+}
+
+__all__ = ["__version__", *_PUBLIC]
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        value = getattr(import_module(f".{_PUBLIC[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -42,3 +42,18 @@ def test_readme_odometry_example_runs(sample_dir, capsys):
     vo = ns["vo"]
     assert [s.status for s in vo.steps] == ["first", "tracked", "tracked"]
     assert "lost" not in capsys.readouterr().out
+
+
+def test_public_api_is_importable_from_the_package():
+    import covo_gtsam
+    from covo_gtsam import Camera, VisualOdometry, estimate_relative_pose
+    from covo_gtsam.estimator import estimate_relative_pose as direct
+
+    assert estimate_relative_pose is direct
+    assert VisualOdometry(Camera.preset("fr1")).camera.fx == 517.3
+    for name in covo_gtsam.__all__:
+        assert getattr(covo_gtsam, name) is not None
+    import pytest
+
+    with pytest.raises(AttributeError):
+        covo_gtsam.no_such_name  # noqa: B018
