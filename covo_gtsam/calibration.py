@@ -161,6 +161,10 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
         from scipy.optimize import minimize
     except ImportError as exc:  # pragma: no cover - depends on the installation
         raise ImportError('fitting the sensor terms needs SciPy: pip install "covo-gtsam[calibrate]"') from exc
+    # a term whose basis is zero on every pair (e.g. the rolling shutter without a readout) leaves
+    # the likelihood flat: it is not fitted and reported as 0
+    dead = [k for k, B in bases.items() if not np.any(B)]
+    bases = {k: B for k, B in bases.items() if k not in dead}
     names = list(bases)
 
     def params(x: np.ndarray) -> tuple[float, float, float, dict]:
@@ -190,4 +194,4 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
             best = res
     kappa, s_r, s_t, sig = params(best.x)
     return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors),
-                       {k: float(v) for k, v in sig.items()})
+                       {**{k: float(v) for k, v in sig.items()}, **{k: 0.0 for k in dead}})

@@ -11,9 +11,8 @@ grows with the camera's speed.
 frames (the frame count ``k`` advancing by ``round(dt / P)`` across dropped frames) and reports
 each new stamp's offset ``r = t - (t_0 + P k)`` from that fit, causally, as frames arrive. Stamps
 that do not follow a regular clock (scattering by more than 15 % of the period, or off it by more
-than a quarter period) get no offset, and
-neither do the first frames of a run: their stamps keep their full jitter (the ``stamp_jitter``
-term of the covariance).
+than a quarter period) get no offset, and neither do the first 20 frames of a run: their stamps
+keep their full jitter (the ``stamp_jitter`` term of the covariance).
 """
 
 from __future__ import annotations
@@ -28,19 +27,18 @@ class FrameClock:
     """Causal least-squares fit of a regular frame clock to the stamps seen so far.
 
     ``nominal_period_s``: the camera's nominal frame period (s), used to count frames across gaps
-    and as the period until ``fit_period_after`` stamps were seen (only the phase is fitted
-    before). ``window``: how many recent frames the fit uses. ``min_frames``: offsets are 0 until
-    this many stamps were seen.
+    (the fitted period once there is one). ``window``: how many recent frames the fit uses.
+    ``min_frames``: no offsets until this many stamps were seen (at most ``window``): a fit of
+    phase and period to fewer stamps, or of the phase alone with the nominal period, invents
+    offsets when the camera's period differs from the nominal.
     """
 
-    def __init__(self, nominal_period_s: float, window: int = 60, min_frames: int = 3,
-                 fit_period_after: int = 20) -> None:
+    def __init__(self, nominal_period_s: float, window: int = 60, min_frames: int = 20) -> None:
         self.nominal = float(nominal_period_s)
         self._k: deque[float] = deque(maxlen=window)
         self._t: deque[float] = deque(maxlen=window)
         self._count = 0.0
-        self._min = min_frames
-        self._fit_period_after = fit_period_after
+        self._min = min(min_frames, window)
         self.period_s: float | None = None  # fitted period, once fitted
         self.samples = 0  # stamps in the last fit (0: none)
 
@@ -62,15 +60,11 @@ class FrameClock:
             return None
         k = np.asarray(self._k) - self._k[0]
         t = np.asarray(self._t) - self._t[0]
-        if len(t) < self._fit_period_after:
-            period = self.nominal
-            phase = float(np.mean(t - period * k))
-        else:
-            A = np.stack([np.ones_like(k), k], axis=1)
-            phase, period = np.linalg.lstsq(A, t, rcond=None)[0]
-            if not (0.5 * self.nominal < period < 2.0 * self.nominal):
-                return None  # no regular clock in these stamps
-            self.period_s = float(period)
+        A = np.stack([np.ones_like(k), k], axis=1)
+        phase, period = np.linalg.lstsq(A, t, rcond=None)[0]
+        if not (0.5 * self.nominal < period < 2.0 * self.nominal):
+            return None  # no regular clock in these stamps
+        self.period_s = float(period)
         resid = t - (phase + period * k)
         r = float(resid[-1])
         # stamps that scatter by more than 15 % of the period (5 ms at 30 Hz) follow no regular clock

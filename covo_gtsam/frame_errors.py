@@ -35,7 +35,9 @@ def transfer_gains(R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.nd
 
     The estimate minimises ``sum r_i^T S_i^-1 r_i`` with ``r_i = X_ref,i - (R X_cur,i + t)`` and
     ``S_i = Q_ref,i + R Q_cur,i R^T`` (the consistent weighting; docs/derivation.md), so
-    ``dxi = -H^-1 sum J_i^T S_i^-1 dr_i`` with ``dr_i = dX_ref,i - R dX_cur,i``.
+    ``dxi = -H^-1 sum J_i^T S_i^-1 dr_i`` with ``dr_i = dX_ref,i - R dX_cur,i``. These are the
+    gains of the default estimator; with the thesis weighting or a robust kernel they are those
+    of the consistent, unweighted estimate, an approximation.
     """
     J, _ = transfer_jacobians(R, t, X_ref, X_cur)
     JtW = J.transpose(0, 2, 1) @ np.linalg.inv(Q_ref + rotate_covariances(R, Q_cur))

@@ -155,12 +155,17 @@ class IntegrityScale:
         self._values: deque[float] = deque(maxlen=window)
 
     def normalise(self, statistic: float) -> float:
-        """The statistic divided by the run's scale (this pair included in the median)."""
+        """The statistic divided by the run's scale (the median taken with this pair included);
+        :meth:`add` makes the pair part of the run's scale."""
         if not np.isfinite(statistic):
             return float("inf")
-        self._values.append(float(statistic))
-        scale = float(np.median(self._values)) / CHI2_6_MEDIAN
+        scale = float(np.median([*self._values, float(statistic)])) / CHI2_6_MEDIAN
         return statistic / scale if scale > 0 else 0.0
+
+    def add(self, statistic: float) -> None:
+        """Count a kept pair's raw statistic in the run's scale."""
+        if np.isfinite(statistic):
+            self._values.append(float(statistic))
 
     @property
     def scale(self) -> float:

@@ -143,17 +143,17 @@ class OdometryConfig:
     variance_factor: bool = False
     max_rotation_deg: float = 30.0
     max_translation_m: float = 0.5
-    correlation_factor: float = 1.43
-    frame_sigma_rot_deg: float = 0.115
-    frame_sigma_trans_m: float = 0.000764
+    correlation_factor: float = 1.33
+    frame_sigma_rot_deg: float = 0.105
+    frame_sigma_trans_m: float = 0.00085
     frame_interval_s: float = 1.0 / 30.0
-    timing_sigma_s: float = 0.0006
+    timing_sigma_s: float = 0.00068
     integrity_threshold: float = 50.0
     frame_clock: bool = True
     depth_time_compensation: bool = False
     depth_scale_sigma: float = 0.0
     depth_time_factor: float = 0.0
-    rolling_shutter_factor: float = 1.33
+    rolling_shutter_factor: float = 1.2
     stamp_jitter_s: float = 0.002
     clock_window: int = 60
     restart_after: int = 5
@@ -173,7 +173,7 @@ class OdometryConfig:
         for name, (kind, lo, hi) in _REAL_LIMITS.items():
             check_real(name, getattr(self, name), kind, lo, hi)
         check_int("restart_after", self.restart_after, 1)
-        check_int("clock_window", self.clock_window, 3)
+        check_int("clock_window", self.clock_window, 20)
 
     def gap_noise(self) -> np.ndarray:
         """6x6 covariance of the unknown motion across a tracking gap (tangent [omega, v]):
@@ -274,6 +274,7 @@ class OdometryStep:
     velocity: np.ndarray | None = None
     quality: float | None = None
     flagged: bool = False
+    integrity_statistic: float | None = None
     clock_offset: float = 0.0
     clock_samples: int = 0
     error_bases: dict | None = field(default=None, repr=False)
@@ -413,6 +414,8 @@ class VisualOdometry:
         if not step.tracked and self._lost_run >= self.config.restart_after:
             return self._restart(frame, step)
         if step.tracked:
+            if step.integrity_statistic is not None:
+                self._integrity.add(step.integrity_statistic)
             if last is not None and step.timestamp > last[1].timestamp:
                 self._velocity = (last[1].pose.between(step.pose), step.timestamp - last[1].timestamp)
             self._last = (frame, step)
@@ -452,8 +455,7 @@ class VisualOdometry:
             step.reason = f"only {pairs.num_inliers} point pairs (need {min_pairs})"
             return step
         # time between the two captures: the stamps' difference corrected by the frame clock
-        offset = self._clock_offset or 0.0
-        dt = timestamp - ref_step.timestamp - offset + ref_step.clock_offset
+        dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)
         try:
             X_ref, X_cur = pairs.X_ref, pairs.X_cur
             res = self._solve(X_ref, X_cur, pairs, None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
@@ -471,27 +473,33 @@ class VisualOdometry:
             step.reason = (f"implausible motion ({angle:.1f} deg, {dist:.2f} m to the reference frame; limits "
                            f"{self.config.max_rotation_deg:g} deg, {self.config.max_translation_m:g} m)")
             return step
-        step.status = "tracked"
         step.velocity = gtsam.Pose3.Logmap(res.pose) / dt if dt > 0 else None
         twists = None
         if step.velocity is not None:
             twists = np.stack([step.velocity if ref_step.velocity is None else ref_step.velocity, step.velocity])
         step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, step.velocity)
-        step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
+        try:
+            step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
+        except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
+            step.reason = str(exc)
+            return step
+        step.status = "tracked"
         try:
             check = depth_free_check(res.pose.matrix(), X_ref, X_cur, pairs.Q_ref, pairs.Q_cur,
                                      self.camera.fx, self.camera.fy, self.config.pixel_sigma)
         except np.linalg.LinAlgError:
             check = None  # too few well-spread points for a depth-free estimate: no quality value
-        if check is not None and np.all(np.isfinite(check.inflation())):
+        if check is not None and np.isfinite(check.statistic) and np.all(np.isfinite(check.inflation())):
+            # the run's scale learns from this pair only if the pair is kept (register_frame)
+            step.integrity_statistic = check.statistic
             step.quality = self._integrity.normalise(check.statistic)
             step.flagged = not step.quality <= self.config.integrity_threshold
             if step.flagged:  # honest: the covariance covers the disagreement of the two depth-free estimates
                 step.covariance = check.inflate(step.covariance, step.quality)
         step.relative = res.pose
-        if twists is not None and (ref_step.clock_offset or offset):
+        if twists is not None and (r_ref or r_cur):
             # the pose between the two stamps, as a back end fed with the stamps reads it
-            step.relative, Ad = restamp(res.pose, ref_step.clock_offset * twists[0], offset * twists[1])
+            step.relative, Ad = restamp(res.pose, r_ref * twists[0], r_cur * twists[1])
             step.covariance = Ad @ step.covariance @ Ad.T
             step.error_bases = {k: Ad @ B @ Ad.T for k, B in step.error_bases.items()}
         step.result = res
@@ -501,6 +509,22 @@ class VisualOdometry:
         if self._keyframe_min_pairs == 0:
             self._keyframe_min_pairs = max(2 * min_pairs, int(self.config.keyframe_ratio * pairs.num_inliers))
         return step
+
+    def _capture_interval(self, ref_step: OdometryStep, timestamp: float) -> tuple[float, float, float]:
+        """``(dt, r_ref, r_cur)``: the time between the two frames' captures (s) and the clock offsets
+        (s) used to move the pose to the stamps. The stamps' difference corrected by the frame clock;
+        the stamps' difference with no offsets when the clock has not placed both frames or would
+        change the interval by more than half (e.g. a repeated stamp). An interval shorter than a
+        quarter of ``frame_interval_s`` counts as 0: no velocity is taken from it."""
+        stamp_dt = timestamp - ref_step.timestamp
+        r_ref, r_cur = ref_step.clock_offset, (self._clock_offset or 0.0)
+        dt = stamp_dt - r_cur + r_ref
+        if not (ref_step.clock_samples and self._clock_offset is not None and stamp_dt > 0
+                and 0.5 * stamp_dt <= dt <= 2.0 * stamp_dt):
+            dt, r_ref, r_cur = stamp_dt, 0.0, 0.0
+        if dt < 0.25 * self.config.frame_interval_s:
+            dt = 0.0
+        return dt, r_ref, r_cur
 
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, velocity: np.ndarray | None) -> dict:

@@ -74,7 +74,9 @@ def test_consistent_pairs_raise_few_false_alarms():
     flagged = []
     for i in range(250):
         X0, X1, Q0, Q1 = _pair(scene, rng, model)
-        q = scale.normalise(depth_free_check(scene.T01, X0, X1, Q0, Q1, FX, FY, model.pixel.sigma_u).statistic)
+        stat = depth_free_check(scene.T01, X0, X1, Q0, Q1, FX, FY, model.pixel.sigma_u).statistic
+        q = scale.normalise(stat)
+        scale.add(stat)
         if i >= 50:
             flagged.append(q > THRESHOLD)
     assert np.mean(flagged) <= 0.02
@@ -95,13 +97,16 @@ def test_a_biased_depth_image_is_flagged_and_covered():
     for _ in range(30):  # consistent pairs set the run's scale
         X0, X1, Q0, Q1 = _pair(scene, rng, model)
         res = estimate_relative_pose(X0, X1, Q0, Q1)
-        q = scale.normalise(depth_free_check(res.pose.matrix(), X0, X1, Q0, Q1, FX, FY, 8.0).statistic)
+        stat = depth_free_check(res.pose.matrix(), X0, X1, Q0, Q1, FX, FY, 8.0).statistic
+        q = scale.normalise(stat)
+        scale.add(stat)
     caught = 0
     for _ in range(10):
         X0, X1, Q0, Q1 = _pair(scene, rng, model, depth_bias=0.05)
         res = estimate_relative_pose(X0, X1, Q0, Q1)
         check = depth_free_check(res.pose.matrix(), X0, X1, Q0, Q1, FX, FY, 8.0)
         q = scale.normalise(check.statistic)
+        scale.add(check.statistic)
         err = relative_pose_tangent_errors(res.pose.matrix()[None], T_true[None])[0]
         nees_before = err @ np.linalg.solve(res.covariance, err)
         C = check.inflate(res.covariance, q)
@@ -118,5 +123,9 @@ def test_scale_normalises_typical_pairs_to_the_chi2_median():
     assert s.scale == 1.0
     for v in np.linspace(50, 70, 49):
         s.normalise(v)
+        s.add(v)
     assert s.normalise(60.0) == pytest.approx(60.0 / (60.0 / CHI2_6_MEDIAN), rel=0.05)
+    assert s.normalise(1000.0) > 50  # one pair far off the run's usual stands out
+    s.add(float("inf"))  # not counted
+    assert s.scale == pytest.approx(60.0 / CHI2_6_MEDIAN, rel=0.05)
     assert s.normalise(float("nan")) == float("inf")
