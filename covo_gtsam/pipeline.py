@@ -318,11 +318,11 @@ def calibrate_sequence(
                             fixed=prior_covariances(consecutive, priors)), result
 
 
-def calibration_pairs(steps, lookup: dict, config: OdometryConfig) -> list[OdometryStep]:
+def calibration_pairs(steps, lookup: dict, config: OdometryConfig, require_clock: bool = True) -> list[OdometryStep]:
     """The steps a fit of the sensor terms uses: tracked consecutive pairs (one frame interval) with a
     velocity and ground truth at both frames (``lookup``: stamp -> pose), not flagged by the integrity
-    check, both frames placed by the frame clock (when it is on)."""
-    clocked = {s.timestamp for s in steps if s.clock_samples or not config.frame_clock}
+    check, with ``require_clock`` both frames placed by the frame clock (when it is on)."""
+    clocked = {s.timestamp for s in steps if s.clock_samples or not config.frame_clock or not require_clock}
     return [s for s in steps if s.status == "tracked" and s.velocity is not None and not s.flagged
             and s.timestamp in clocked and s.ref_timestamp in clocked
             and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1

@@ -51,12 +51,13 @@ def per_point_pairs(data: Path, name: str, **overrides) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False, keep_error_bases=True)
     lookup = ground_truth_lookup(seq)
-    pairs = calibration_pairs(run.steps, lookup, cfg)  # the pairs covo calibrate fits
+    pairs = calibration_pairs(run.steps, lookup, cfg, require_clock=False)
+    fit_ok = {id(s) for s in calibration_pairs(run.steps, lookup, cfg)}  # the pairs covo calibrate fits
     T_est, T_true, covs = relative_ground_truth(pairs, lookup)
     index = {t: i for i, t in enumerate(seq.timestamps)}
     priors = {k: getattr(OdometryConfig(), ERROR_TERMS[k]) for k in PRIOR_TERMS}
     return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "bases": stacked_bases(pairs),
-            "fixed": prior_covariances(pairs, priors),
+            "fixed": prior_covariances(pairs, priors), "fit_ok": np.array([id(s) in fit_ok for s in pairs], bool),
             "end": np.array([index[s.timestamp] for s in pairs]), "T_est": T_est, "T_true": T_true}
 
 
@@ -118,7 +119,7 @@ def tables(data: Path) -> list[str]:
                   "| fitted on | model | terms | checked on | ANEES t / r | NEES > 9.35 t / r | largest NEES t / r | "
                   f"{CHAIN}-pair chains ANEES t / r | log-likelihood per pair |", "|---|---|---|---|---|---|---|---|---|"]
         for fit_name, m in halves.items():
-            train = subset(rpy, m)
+            train = subset(rpy, m & rpy["fit_ok"])
             for model, names in MODELS.items():
                 fit = fit_sensor_terms(train["err"], train["cov"], bases={n: train["bases"][n] for n in names},
                                        fixed=train["fixed"])
