@@ -1,20 +1,37 @@
-"""Per-stage time per frame, whole-process frames/s and peak memory of `covo run` on a TUM sequence.
+"""Time and CPU per frame, whole-process frames/s and peak memory of `covo run` on a TUM sequence.
 
     python benchmarks/bench_pipeline.py SEQ_DIR [--max-frames N]
 
-Stages are timed one after another on the main thread (no overlap), calling the same functions
-the pipeline calls. The "decoded in advance" figure runs the odometry as `covo run` does (features
-of the next frames prepared on worker threads) on images decoded beforehand. The whole-process figure runs `covo run --no-plots --quiet` as a child process
-(start-up, decoding and the prefetch threads included). Peak RSS of the child is given for 60 frames
-and for the whole sequence to show that memory stays flat.
+1. Stages timed one after another on the main thread (no overlap), calling the same functions the
+   pipeline calls (wall ms per frame).
+2. ``register_frame`` alone on frames prepared beforehand, one thread (wall and CPU ms per frame).
+3. CPU of a whole run in this process (:func:`covo_gtsam.pipeline.run_sequence`, progress bar and
+   output files included, no figures): CPU seconds per frame of the process, of the main thread
+   and of the prefetch workers (``time.thread_time``); the rest is threads Python does not see
+   (OpenCV's and BLAS's own) and thread start-up.
+4. Where that CPU goes: the same run under ``cProfile`` with a CPU clock per thread
+   (``time.thread_time``), main thread and workers merged, summed by stage (each stage the
+   inclusive time of the functions named in :data:`STAGES`; "other" is the rest: Python glue,
+   thread hand-offs, step bookkeeping). Profiling slows Python code down, so the shares matter,
+   not the absolute figures.
+5. Whole process: `covo run --no-plots --quiet` as a child process (start-up, decoding and the
+   prefetch threads included): wall frames/s, CPU (user + sys) per frame, and peak RSS for 60
+   frames and for the whole sequence to show that memory stays flat.
+6. "Decoded in advance": the odometry as `covo run` runs it (features of the next frames prepared
+   on worker threads) on images decoded beforehand.
 """
 
 from __future__ import annotations
 
+import contextlib
+import cProfile
+import io
+import pstats
 import resource
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import defaultdict, deque
 from concurrent.futures import ThreadPoolExecutor
@@ -35,10 +52,31 @@ from covo_gtsam.frontend import (
     prepare_frame,
     ransac_rigid3d,
 )
+from covo_gtsam import pipeline
 from covo_gtsam.io import format_relative_line, format_tum_line
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
-from covo_gtsam.pipeline import PREFETCH
+from covo_gtsam.pipeline import PREFETCH, kernel_threads, run_sequence
 from covo_gtsam.rolling_shutter import compensate_points, frame_twists
+
+#: Profile stages: (module file, function) pairs whose inclusive CPU time makes up the stage.
+#: None of them calls another of a different stage, except ``prepare_frame``, which calls
+#: ``detect`` (subtracted, see :func:`stage_profile`).
+STAGES = {
+    "decode colour + depth (PNG)": [("frontend.py", "load_grey"), ("frontend.py", "load_depth")],
+    "ORB": [("frontend.py", "detect")],
+    "3D points + covariances": [("frontend.py", "prepare_frame")],
+    "matching": [("frontend.py", "match")],
+    "RANSAC": [("frontend.py", "ransac_rigid3d")],
+    "solves (2 per pair)": [("odometry.py", "_solve")],
+    "time compensation of points": [("odometry.py", "_to_frame_time"), ("rolling_shutter.py", "frame_twists")],
+    "covariance terms + composition": [("odometry.py", "_error_bases"), ("odometry.py", "sensor_covariance"),
+                                       ("covariance.py", "compose_covariance"), ("clock.py", "restamp")],
+    "integrity check": [("integrity.py", "depth_free_check"), ("integrity.py", "normalise")],
+    "frame clock + motion prediction": [("clock.py", "offset"), ("odometry.py", "predict")],
+    "output files": [("io.py", "write"), ("g2o.py", "vertex"), ("g2o.py", "edge")],
+    "progress bar": [("std.py", "update"), ("std.py", "set_postfix")],
+    "metrics (end of run)": [("evaluation.py", "evaluate_run")],
+}
 
 
 def compensated_solve(pairs, res, dt: float, height: int, readout: float):
@@ -92,7 +130,7 @@ def pre_decoded_rate(seq, n: int) -> float:
     images = [(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i])) for i in range(n)]
     vo = VisualOdometry(seq.camera)
     start = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=PREFETCH) as pool:
+    with kernel_threads(1), ThreadPoolExecutor(max_workers=PREFETCH) as pool:
         pending = deque(pool.submit(vo.prepare, *images[i]) for i in range(min(PREFETCH, n)))
         for i in range(n):
             frame = pending.popleft().result()
@@ -102,17 +140,99 @@ def pre_decoded_rate(seq, n: int) -> float:
     return n / (time.perf_counter() - start)
 
 
-def whole_process(seq_dir: str, n: int | None) -> tuple[float, float]:
+def register_times(seq, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Wall and CPU ms of each ``register_frame`` (after the first) on frames prepared beforehand,
+    one thread, OpenCV and BLAS single-threaded as in `covo run`."""
+    vo = VisualOdometry(seq.camera)
+    with kernel_threads(1):
+        frames = [vo.prepare(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i])) for i in range(n)]
+        wall, cpu = [], []
+        for i in range(n):
+            w, c = time.perf_counter(), time.thread_time()
+            vo.register_frame(frames[i], None, seq.timestamps[i])
+            wall.append(time.perf_counter() - w)
+            cpu.append(time.thread_time() - c)
+    return 1e3 * np.array(wall[1:]), 1e3 * np.array(cpu[1:])
+
+
+@contextlib.contextmanager
+def watched_workers(profile: bool):
+    """Count the prefetch workers' CPU (``time.thread_time`` inside each frame load) and, with
+    ``profile``, run a CPU-clock ``cProfile`` per worker thread. Yields ``(cpu_seconds, profiles)``."""
+    original, local, lock = pipeline._load_frame, threading.local(), threading.Lock()
+    cpu, profiles = [0.0], []
+
+    def load_frame(*args):
+        prof = getattr(local, "profile", None)
+        if profile and prof is None:
+            prof = local.profile = cProfile.Profile(time.thread_time)
+            with lock:
+                profiles.append(prof)
+        start = time.thread_time()
+        if prof is not None:
+            prof.enable()
+        try:
+            return original(*args)
+        finally:
+            if prof is not None:
+                prof.disable()
+            with lock:
+                cpu[0] += time.thread_time() - start
+
+    pipeline._load_frame = load_frame
+    try:
+        yield cpu, profiles
+    finally:
+        pipeline._load_frame = original
+
+
+def in_process_run(seq, n: int, profile: bool = False) -> dict:
+    """One `covo run` (no figures) in this process: wall, process CPU, main-thread and worker CPU
+    (seconds), and with ``profile`` the merged ``pstats.Stats`` of all threads."""
+    with tempfile.TemporaryDirectory() as out, watched_workers(profile) as (workers, profiles), \
+            contextlib.redirect_stderr(io.StringIO()):  # the progress bar runs, unseen
+        main = cProfile.Profile(time.thread_time) if profile else None
+        wall, cpu, thread = time.perf_counter(), time.process_time(), time.thread_time()
+        if main is not None:
+            main.enable()
+        run_sequence(seq, out, max_frames=n, plots=False, progress=True)
+        if main is not None:
+            main.disable()
+        result = {"wall": time.perf_counter() - wall, "process": time.process_time() - cpu,
+                  "main": time.thread_time() - thread, "workers": workers[0]}
+    if profile:
+        stats = pstats.Stats(main)
+        for p in profiles:
+            stats.add(p)
+        result["stats"] = stats
+    return result
+
+
+def stage_profile(stats: pstats.Stats) -> dict[str, float]:
+    """CPU seconds per stage of :data:`STAGES` (inclusive times), "other" the rest of the
+    profiled threads' CPU."""
+    inclusive = defaultdict(float)
+    for (path, _, name), (_, _, _, cumulative, _) in stats.stats.items():
+        inclusive[(path.rsplit("/", 1)[-1], name)] += cumulative
+    out = {stage: sum(inclusive[f] for f in functions) for stage, functions in STAGES.items()}
+    out["3D points + covariances"] -= inclusive[("frontend.py", "detect")]
+    out["other (Python glue, hand-offs, bookkeeping)"] = stats.total_tt - sum(out.values())
+    return out
+
+
+def whole_process(seq_dir: str, n: int | None) -> tuple[float, float, float]:
+    """Wall seconds, CPU seconds (user + sys) and peak RSS (MB) of `covo run --no-plots --quiet`."""
     with tempfile.TemporaryDirectory() as out:
         cmd = [sys.executable, "-m", "covo_gtsam.cli", "run", seq_dir, "--out", out, "--no-plots", "--quiet"]
         if n:
             cmd += ["--max-frames", str(n)]
-        before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
         s = time.perf_counter()
         subprocess.run(cmd, check=True, capture_output=True)
         wall = time.perf_counter() - s
-        rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return wall, max(rss, before) / 1024.0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+    return wall, cpu, max(after.ru_maxrss, before.ru_maxrss) / 1024.0
 
 
 def main() -> None:
@@ -124,14 +244,37 @@ def main() -> None:
         print(f"{name:<48} {np.median(v):7.2f} {np.percentile(v, 10):7.2f} {np.percentile(v, 90):7.2f}")
     print("(prepare frame includes ORB detect and depth lookup; stages run sequentially here, while `covo run`"
           " decodes and prepares the next frames on worker threads)")
-    # ru_maxrss of the children is a running maximum: the short run goes first
+
+    # before the in-process runs, which hold many decoded frames (a forked child starts with the parent's
+    # memory); ru_maxrss of the children is a running maximum: the short run goes first
     small = min(60, n)
-    _, rss60 = whole_process(str(seq.path), small)
-    wall, rss = whole_process(str(seq.path), n)
-    print(f"\nwhole process `covo run --no-plots`: {n} frames in {wall:.2f} s = {n / wall:.1f} frames/s "
-          f"(start-up and decoding included)")
+    *_, rss60 = whole_process(str(seq.path), small)
+    whole_wall, whole_cpu, rss = whole_process(str(seq.path), n)
+    print(f"\nwhole process `covo run --no-plots`: {n} frames in {whole_wall:.2f} s = {n / whole_wall:.1f} "
+          f"frames/s, CPU {whole_cpu:.2f} s = {1e3 * whole_cpu / n:.1f} ms per frame (start-up and decoding included)")
     print(f"peak RSS: {rss60:.0f} MB for {small} frames, {rss:.0f} MB for {n} frames")
-    # after the child processes: they would otherwise be forked from a process holding the decoded images
+
+    wall, cpu = register_times(seq, n)
+    print(f"\nregister_frame on prepared frames, one thread: median {np.median(wall):.2f} ms wall, "
+          f"{np.median(cpu):.2f} ms CPU (p10 {np.percentile(wall, 10):.2f}, p90 {np.percentile(wall, 90):.2f} ms wall)")
+
+    runs = [in_process_run(seq, n) for _ in range(3)]
+    r = sorted(runs, key=lambda x: x["process"])[1]  # the run with the median process CPU
+    ms = 1e3 / n
+    print(f"\nCPU of a whole run in this process, ms per frame (median of 3 runs by process CPU; "
+          f"{n / r['wall']:.1f} frames/s wall):")
+    print(f"  process {r['process'] * ms:.1f} = main thread {r['main'] * ms:.1f} + prefetch workers "
+          f"{r['workers'] * ms:.1f} + other threads (OpenCV, BLAS, start-up) "
+          f"{(r['process'] - r['main'] - r['workers']) * ms:.1f}")
+    prof = in_process_run(seq, n, profile=True)
+    stages = stage_profile(prof["stats"])
+    total = sum(stages.values())
+    print(f"\nwhere the CPU goes (cProfile, CPU clock per thread, all threads; profiled: "
+          f"{total * ms:.1f} ms per frame)")
+    print(f"{'stage':<48} {'ms/frame':>8} {'share':>6}")
+    for name, v in stages.items():
+        print(f"{name:<48} {v * ms:8.2f} {100 * v / total:5.1f}%")
+
     rates = [pre_decoded_rate(seq, n) for _ in range(3)]
     print(f"\ndecoded in advance (ORB, 3D points, matching, RANSAC, solve, covariance): "
           f"{np.median(rates):.1f} frames/s (median of 3 runs: {', '.join(f'{r:.1f}' for r in rates)})")

@@ -23,7 +23,8 @@ streams the bag).
 The text files are flushed line by line, so an interrupted run leaves valid files for the frames
 processed so far. Decoding and feature extraction of the next frame run on a worker thread
 (OpenCV releases the GIL) while the current frame pair is solved on the main thread (GTSAM's
-Python callbacks stay there).
+Python callbacks stay there). These threads are the run's parallelism: during the run OpenCV and
+numpy's BLAS are kept to one thread each (:func:`kernel_threads`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import os
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -123,6 +125,34 @@ def prepare_outputs(out: Path, files: Sequence[str], figures: tuple[str, Sequenc
             raise DatasetError(f"{path}: cannot remove the result of an earlier run ({exc.strerror or exc})") from exc
 
 
+@contextmanager
+def kernel_threads(n: int = 1):
+    """Keep OpenCV and numpy's BLAS library to ``n`` threads each inside the block (restored after).
+
+    The run already keeps the cores busy (the frame pair on the main thread, :data:`PREFETCH`
+    frames prepared on workers). A multi-threaded BLAS (OpenBLAS) would split the small matrix
+    products of the RANSAC and the solves over every core, and its threads spin while they wait
+    for work: on two cores that cost a quarter of the run's CPU time and a fifth of its wall time,
+    for the same results. BLAS is limited through ``threadpoolctl`` when it is installed.
+    """
+    import cv2
+
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl is a dependency
+        threadpool_limits = None
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        if threadpool_limits is None:
+            yield
+        else:
+            with threadpool_limits(limits=n, user_api="blas"):
+                yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def _frame_loader(seq, n: int, depth_scale: float, camera: Camera):
     """``i -> (grey, depth)`` for the frames of ``seq``: the sequence's own ``loader`` if it has one
     (a bag), else the image files of a TUM folder (an image of another size than ``camera``'s is
@@ -190,7 +220,8 @@ def run_sequence(
         from .plots import RUN_PLOTS
 
         prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
-        return _run(vo, seq, out, config, max_frames, plots, progress, bag_out)
+        with kernel_threads(1):
+            return _run(vo, seq, out, config, max_frames, plots, progress, bag_out)
 
 
 def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig, max_frames: int | None,

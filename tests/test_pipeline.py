@@ -225,3 +225,19 @@ def test_default_depth_sigma_scale_minimises_rpe1_on_the_first_half_of_fr1_rpy(f
     best = rpe1(default.depth_sigma_scale)
     for scale in (1.0, default.depth_sigma_scale - 1.0, default.depth_sigma_scale + 1.0):
         assert best < rpe1(scale)
+
+
+def test_kernel_threads_limits_opencv_and_blas_and_restores_them():
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    from covo_gtsam.pipeline import kernel_threads
+
+    def blas_threads():
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    cv_before, blas_before = cv2.getNumThreads(), blas_threads()
+    with kernel_threads(1):
+        assert cv2.getNumThreads() == 1
+        assert all(n == 1 for n in blas_threads())
+    assert cv2.getNumThreads() == cv_before and blas_threads() == blas_before
