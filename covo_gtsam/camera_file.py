@@ -21,13 +21,13 @@ that are not numbers raise :class:`~covo_gtsam.errors.ConfigError` naming the fi
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
 
 from .camera import Camera
 from .errors import ConfigError
+from .io import read_settings_file
 
 __all__ = ["load_camera_file", "resolve_camera"]
 
@@ -38,39 +38,9 @@ _YAML_KEYS = {"image_width", "image_height", "camera_name", "camera_matrix", "di
 
 
 def _read(p: Path) -> dict:
-    suffix = p.suffix.lower()
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read camera file ({exc.strerror or exc})") from exc
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{p}: not a text file in UTF-8 ({exc.reason} at byte {exc.start})") from exc
-    kind = {".yaml": "YAML", ".yml": "YAML", ".toml": "TOML", ".json": "JSON"}.get(suffix)
-    if kind is None:
+    if p.suffix.lower() not in (".yaml", ".yml", ".toml", ".json"):
         raise ConfigError(f"{p}: a camera file is .yaml/.yml (ROS camera_calibration), .toml or .json")
-    try:
-        if kind == "YAML":
-            try:
-                import yaml
-            except ImportError:
-                raise ConfigError(f'{p}: YAML camera files need PyYAML: pip install "covo-gtsam[ros]" '
-                                  "(or pip install pyyaml)") from None
-            data = yaml.safe_load(text)
-        elif kind == "TOML":
-            try:
-                import tomllib
-            except ImportError:  # Python 3.10
-                raise ConfigError(f"{p}: TOML needs Python >= 3.11; use a .json or .yaml file") from None
-            data = tomllib.loads(text)
-        else:
-            data = json.loads(text)
-    except ConfigError:
-        raise
-    except Exception as exc:  # the parsers' own error classes
-        raise ConfigError(f"{p}: not a valid {kind} file ({str(exc).splitlines()[0]})") from exc
-    if not isinstance(data, dict):
-        raise ConfigError(f"{p}: a camera file must be a table/mapping of keys")
-    return data
+    return read_settings_file(p, "camera file", ("YAML", "TOML", "JSON"))
 
 
 def _number(p: Path, key: str, value) -> float:

@@ -8,7 +8,6 @@ file and the problem; no traceback. ``covo run`` that tracks no frame at all end
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -59,29 +58,11 @@ def _float_in(minimum: float | None = None, maximum: float | None = None):
 
 def load_config_file(path: str):
     """Read an odometry configuration from a TOML (.toml) or JSON file."""
+    from .io import read_settings_file
     from .odometry import OdometryConfig
 
     p = Path(path)
-    is_toml = p.suffix.lower() == ".toml"
-    try:
-        text = p.read_text(encoding="utf-8-sig")  # a byte-order mark, as some editors write, is dropped
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read configuration file ({exc.strerror or exc})") from exc
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{p}: not a text file in UTF-8 ({exc.reason} at byte {exc.start})") from exc
-    try:
-        if is_toml:
-            try:
-                import tomllib
-            except ImportError:  # Python 3.10
-                raise ConfigError(f"{p}: TOML needs Python >= 3.11; use a .json file") from None
-            data = tomllib.loads(text)
-        else:
-            data = json.loads(text)
-    except (ValueError, TypeError) as exc:
-        raise ConfigError(f"{p}: not a valid {'TOML' if is_toml else 'JSON'} file ({exc})") from exc
-    if not isinstance(data, dict):
-        raise ConfigError(f"{p}: the configuration must be a table/object of settings")
+    data = read_settings_file(p, "configuration file")
     try:
         return OdometryConfig.from_dict(data)
     except ConfigError as exc:

@@ -24,7 +24,7 @@ from typing import IO
 
 import numpy as np
 
-from .errors import DatasetError, InputError
+from .errors import ConfigError, DatasetError, InputError
 from .geometry import pose_from_tum, pose_to_tum
 
 __all__ = [
@@ -37,6 +37,7 @@ __all__ = [
     "format_tum_line",
     "load_relative_poses",
     "load_tum_trajectory",
+    "read_settings_file",
     "write_json",
     "write_relative_header",
     "write_tum_trajectory",
@@ -324,3 +325,50 @@ class FolderLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+#: settings-file suffixes and the format each names
+SETTINGS_FORMATS = {".toml": "TOML", ".json": "JSON", ".yaml": "YAML", ".yml": "YAML"}
+
+
+def read_settings_file(path: str | os.PathLike, what: str, formats: tuple[str, ...] = ("TOML", "JSON")) -> dict:
+    """The table of settings in a TOML, JSON (or, if in ``formats``, YAML) file, chosen by its suffix
+    (anything else reads as JSON when JSON is allowed); ``what`` names the file in messages
+    ("configuration file", "camera file"). A UTF-8 byte-order mark is dropped.
+
+    Raises :class:`ConfigError` naming the file: unreadable, not UTF-8, not valid, not a table, or
+    TOML on Python 3.10 / YAML without PyYAML.
+    """
+    p = Path(path)
+    kind = SETTINGS_FORMATS.get(p.suffix.lower(), "JSON")
+    if kind not in formats:
+        raise ConfigError(f"{p}: a {what} is {' or '.join(formats)} (by its suffix)")
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read {what} ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a text file in UTF-8 ({exc.reason} at byte {exc.start})") from exc
+    try:
+        if kind == "YAML":
+            try:
+                import yaml
+            except ImportError:
+                raise ConfigError(f'{p}: YAML files need PyYAML: pip install "covo-gtsam[ros]" '
+                                  "(or pip install pyyaml)") from None
+            data = yaml.safe_load(text)
+        elif kind == "TOML":
+            try:
+                import tomllib
+            except ImportError:  # Python 3.10
+                raise ConfigError(f"{p}: TOML needs Python >= 3.11; use a .json file") from None
+            data = tomllib.loads(text)
+        else:
+            data = json.loads(text)
+    except ConfigError:
+        raise
+    except Exception as exc:  # the parsers' own error classes
+        raise ConfigError(f"{p}: not a valid {kind} file ({str(exc).splitlines()[0]})") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: the {what} must be a table/object of settings")
+    return data

@@ -172,7 +172,6 @@ def _frame_loader(seq, n: int, depth_scale: float, camera: Camera):
 
 def _load_frame(vo: VisualOdometry, load, i: int, depth_offset: float = 0.0) -> FrameData | CovoError:
     """Decode and prepare one frame; errors are returned (the frame is then reported lost)."""
-    cam = vo.camera
     try:
         item = load(i)
         if isinstance(item, CovoError):

@@ -3,11 +3,9 @@ against Monte Carlo draws of the frame-level errors."""
 
 import gtsam
 import numpy as np
-import pytest
 
 from covo_gtsam.estimator import estimate_relative_pose
-from covo_gtsam.frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, depth_rates,
-                                     rolling_shutter_basis, transfer_gains)
+from covo_gtsam.frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, rolling_shutter_basis, transfer_gains)
 from covo_gtsam.noise import PointNoiseModel
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements
 
