@@ -285,18 +285,19 @@ class OdometryStep:
         return self.status in POSED_STATUSES
 
 
-def _seconds(value) -> float:
+def _seconds(value, what: str = "timestamp") -> float:
+    """``value`` as float seconds; InputError naming ``what`` for anything but a real number."""
     if isinstance(value, (str, bytes, bool, np.bool_)):
-        raise InputError(f"a timestamp must be a number (seconds), got {value!r}")
+        raise InputError(f"{what} must be a number (seconds), got {value!r}")
     try:
         return float(value)
     except (TypeError, ValueError):
-        raise InputError(f"a timestamp must be a number (seconds), got {value!r}") from None
+        raise InputError(f"{what} must be a number (seconds), got {value!r}") from None
 
 
 def check_depth_offset(offset) -> float:
     """``offset`` (depth minus colour time, s) as float; InputError unless finite and at most 1 s."""
-    d = _seconds(offset)
+    d = _seconds(offset, "depth time offset")
     if not (np.isfinite(d) and abs(d) <= 1.0):
         raise InputError(f"the depth image is {d!r} s from its colour image; at most 1 s is usable")
     return d
@@ -385,13 +386,12 @@ class VisualOdometry:
             InputError: the timestamp is not a finite number or goes back in time (the frame is
                 not recorded).
         """
-        timestamp = self._check_timestamp(timestamp)
-        self._clock_offset = self._clock.offset(timestamp) if self.config.frame_clock else None
+        timestamp = self._new_stamp(timestamp)
         try:
             if isinstance(image, FrameData):
                 frame = image
             else:
-                offset = 0.0 if depth_timestamp is None else check_depth_offset(_seconds(depth_timestamp) - timestamp)
+                offset = 0.0 if depth_timestamp is None else _seconds(depth_timestamp, "depth timestamp") - timestamp
                 frame = self.prepare(image, depth, offset)
         except CovoError as exc:
             return self._record(OdometryStep(timestamp, "lost", reason=str(exc)))
@@ -473,11 +473,9 @@ class VisualOdometry:
             step.reason = (f"implausible motion ({angle:.1f} deg, {dist:.2f} m to the reference frame; limits "
                            f"{self.config.max_rotation_deg:g} deg, {self.config.max_translation_m:g} m)")
             return step
-        step.velocity = gtsam.Pose3.Logmap(res.pose) / dt if dt > 0 else None
-        twists = None
-        if step.velocity is not None:
-            twists = np.stack([step.velocity if ref_step.velocity is None else ref_step.velocity, step.velocity])
-        step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, step.velocity)
+        twists = frame_twists(res.pose, dt, ref_step.velocity) if dt > 0 else None
+        step.velocity = None if twists is None else twists[1]
+        step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -498,8 +496,11 @@ class VisualOdometry:
                 step.covariance = check.inflate(step.covariance, step.quality)
         step.relative = res.pose
         if twists is not None and (r_ref or r_cur):
-            # the pose between the two stamps, as a back end fed with the stamps reads it
-            step.relative, Ad = restamp(res.pose, r_ref * twists[0], r_cur * twists[1])
+            # the pose between the two stamps, as a back end fed with the stamps reads it; the
+            # reference frame moves with the twist its own pair moved it with, so consecutive
+            # restamps cancel along the trajectory
+            shift_ref = r_ref * (step.velocity if ref_step.velocity is None else ref_step.velocity)
+            step.relative, Ad = restamp(res.pose, shift_ref, r_cur * step.velocity)
             step.covariance = Ad @ step.covariance @ Ad.T
             step.error_bases = {k: Ad @ B @ Ad.T for k, B in step.error_bases.items()}
         step.result = res
@@ -527,16 +528,17 @@ class VisualOdometry:
         return dt, r_ref, r_cur
 
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
-                     frame: FrameData, ref_step: OdometryStep, velocity: np.ndarray | None) -> dict:
-        """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`)."""
-        ref_velocity = ref_step.velocity
+                     frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None) -> dict:
+        """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`); ``twists``
+        are the camera's twists at the two frames (:func:`~covo_gtsam.rolling_shutter.frame_twists`),
+        None without motion."""
         M = T.matrix()
         G_ref, G_cur = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         b_ref, b_cur = depth_scale_basis(G_ref, X_ref), depth_scale_basis(G_cur, X_cur)
         bases = {"depth_scale": np.outer(b_ref, b_ref) + np.outer(b_cur, b_cur)}
-        if velocity is None:
+        if twists is None:
             return bases  # no motion: no timing terms
-        twist_ref = velocity if ref_velocity is None else 0.5 * (velocity + np.asarray(ref_velocity, dtype=float))
+        twist_ref, velocity = twists
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
         # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
@@ -550,14 +552,13 @@ class VisualOdometry:
             # the twist at the current frame may differ from the pair's mean by half its change
             # since the previous pair; without a previous pair, by half of itself (both frames)
             rows_cur = row_time_offsets(pairs.uv_cur[:, 1], self.camera.height, self.config.rolling_shutter_s)
-            if ref_velocity is not None:
-                u = rolling_shutter_basis(G_cur, X_cur, rows_cur) @ (0.5 * (velocity - np.asarray(ref_velocity)))
-                bases["rolling_shutter"] = np.outer(u, u)
+            B = rolling_shutter_basis(G_cur, X_cur, rows_cur)
+            if ref_step.velocity is not None:
+                u = B @ (0.5 * (velocity - np.asarray(ref_step.velocity)))
             else:
                 rows_ref = row_time_offsets(pairs.uv_ref[:, 1], self.camera.height, self.config.rolling_shutter_s)
-                u = (rolling_shutter_basis(G_cur, X_cur, rows_cur) + rolling_shutter_basis(G_ref, X_ref, rows_ref)) @ (
-                    0.5 * velocity)
-                bases["rolling_shutter"] = np.outer(u, u)
+                u = (B + rolling_shutter_basis(G_ref, X_ref, rows_ref)) @ (0.5 * velocity)
+            bases["rolling_shutter"] = np.outer(u, u)
         return bases
 
     def _to_frame_time(self, fd: FrameData, X: np.ndarray, uv: np.ndarray, twist: np.ndarray) -> np.ndarray:
@@ -601,18 +602,17 @@ class VisualOdometry:
     def mark_lost(self, timestamp: float, reason: str) -> OdometryStep:
         """Report a frame that could not be used at all (e.g. an unreadable file); ``timestamp``
         is checked as in :meth:`register_frame`."""
-        timestamp = self._check_timestamp(timestamp)
-        self._clock_offset = self._clock.offset(timestamp) if self.config.frame_clock else None
-        return self._record(OdometryStep(timestamp, "lost", reason=reason))
+        return self._record(OdometryStep(self._new_stamp(timestamp), "lost", reason=reason))
+
+    def _new_stamp(self, timestamp) -> float:
+        """A frame's checked stamp (:meth:`_check_timestamp`), with the frame clock advanced to it."""
+        t = self._check_timestamp(timestamp)
+        self._clock_offset = self._clock.offset(t) if self.config.frame_clock else None
+        return t
 
     def _check_timestamp(self, timestamp) -> float:
         """``timestamp`` as float; InputError unless finite and >= the previous frame's."""
-        if isinstance(timestamp, (str, bytes, bool, np.bool_)):
-            raise InputError(f"timestamp must be a number (seconds), got {timestamp!r}")
-        try:
-            t = float(timestamp)
-        except (TypeError, ValueError):
-            raise InputError(f"timestamp must be a number (seconds), got {timestamp!r}") from None
+        t = _seconds(timestamp)
         if not np.isfinite(t):
             raise InputError(f"timestamp must be finite, got {t!r}")
         if self.steps and t < self.steps[-1].timestamp:

@@ -19,6 +19,7 @@ from covo_gtsam.errors import CovoError, DegenerateGeometryError, InputError
 from covo_gtsam.estimator import estimate_relative_pose
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
 from covo_gtsam.odometry import VisualOdometry
+from conftest import copy_sample
 
 N_FRAMES = 8
 
@@ -26,21 +27,7 @@ N_FRAMES = 8
 @pytest.fixture
 def small_seq(sample_dir, tmp_path) -> Path:
     """A copy of the first N_FRAMES frames of the sample sequence, safe to corrupt."""
-    dst = tmp_path / "rgbd_dataset_freiburg1_small"
-    dst.mkdir()
-    (dst / "rgb").mkdir()
-    (dst / "depth").mkdir()
-    rgb = [line for line in (sample_dir / "rgb.txt").read_text().splitlines() if not line.startswith("#")][:N_FRAMES]
-    last = float(rgb[-1].split()[0])
-    depth = [line for line in (sample_dir / "depth.txt").read_text().splitlines()
-             if not line.startswith("#") and float(line.split()[0]) <= last + 0.02]
-    for line in rgb + depth:
-        name = line.split()[1]
-        shutil.copy(sample_dir / name, dst / name)
-    (dst / "rgb.txt").write_text("\n".join(rgb) + "\n")
-    (dst / "depth.txt").write_text("\n".join(depth) + "\n")
-    shutil.copy(sample_dir / "groundtruth.txt", dst / "groundtruth.txt")
-    return dst
+    return copy_sample(tmp_path / "rgbd_dataset_freiburg1_small", N_FRAMES)
 
 
 def frame_files(seq: Path, i: int) -> tuple[Path, Path, float]:
