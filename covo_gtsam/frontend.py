@@ -37,7 +37,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import ConfigError, InputError
-from .factors import SYM6, sym3_mahalanobis, transfer_mahalanobis, weighted_rigid_fit
+from .transfer import SYM6, sym3_mahalanobis, transfer_mahalanobis, weighted_rigid_fit
 from .geometry import make_pose, rigid_fit
 from .noise import PointNoiseModel, surface_angles
 from .validation import check_choice, check_int, check_real, is_int, is_real

@@ -63,9 +63,9 @@ import numpy as np
 from covo_gtsam.covariance import tangent_to_tq, tq_to_tangent
 from covo_gtsam.errors import CovoError
 from covo_gtsam.estimator import RelativePoseResult, estimate_relative_pose
-from covo_gtsam.factors import whitened_system, whitening
 from covo_gtsam.geometry import invert_pose, matrix_to_quat
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements, run_simulation
+from covo_gtsam.transfer import whitened_system, whitening
 
 DEFAULT_SEQ = Path(__file__).resolve().parents[1] / "data" / "rgbd_dataset_freiburg1_rpy_head40"
 AXES = ["rx", "ry", "rz", "tx", "ty", "tz"]

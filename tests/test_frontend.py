@@ -406,7 +406,7 @@ def test_transfer_mahalanobis_matches_direct_solve():
     r = X_ref - (X_cur @ R.T + t)
     S = Q_ref + R @ Q_cur @ R.T
     expected = np.einsum("ni,ni->n", r, np.linalg.solve(S, r[..., None])[..., 0])
-    from covo_gtsam.factors import transfer_mahalanobis
+    from covo_gtsam.transfer import transfer_mahalanobis
 
     np.testing.assert_allclose(transfer_mahalanobis(R, t, X_ref, X_cur, Q_ref, Q_cur), expected, rtol=1e-9)
     # not positive definite -> inf, never a negative or NaN distance
@@ -420,7 +420,7 @@ def test_transfer_mahalanobis_matches_direct_solve():
 def test_weighted_rigid_fit_uses_inverse_trace_weights():
     """The same 20 points twice, the second copy shifted by 10 cm in x and with larger covariances:
     no rotation, and the translation is the mean shift weighted by 1 / trace(Q_ref + Q_cur)."""
-    from covo_gtsam.factors import weighted_rigid_fit
+    from covo_gtsam.transfer import weighted_rigid_fit
 
     rng = np.random.default_rng(1)
     pts = rng.uniform(-1, 1, (20, 3)) + [0, 0, 3]
