@@ -25,7 +25,8 @@ from .estimator import ROBUST_KERNELS, RelativePoseResult, estimate_relative_pos
 from .transfer import WEIGHTINGS
 from .clock import FrameClock, restamp
 from .integrity import IntegrityScale, depth_free_check
-from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
+from .datasets.images import to_grey
+from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 from .frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, rolling_shutter_basis,
                            transfer_gains)
