@@ -31,7 +31,8 @@ MAX_GT_COORDINATE = 1e9
 #: Raw units per metre of the TUM depth images (16-bit PNG, value / 5000 = metres).
 DEPTH_SCALE = 5000.0
 
-__all__ = ["DEPTH_SCALE", "Frame", "TumSequence", "associate", "interpolate_poses", "read_file_list", "camera_name_from_path"]
+__all__ = ["DEPTH_SCALE", "Frame", "TumSequence", "associate", "interpolate_poses", "read_file_list",
+           "camera_name_from_path"]
 
 
 @dataclass(frozen=True)
