@@ -7,10 +7,11 @@ from typing import Sequence
 
 import numpy as np
 
+from .chi2 import CHI2_3_975
 from .datasets.tum import MAX_GT_COORDINATE
 from .errors import InputError
 from .geometry import invert_pose
-from .metrics import ate_errors, ate_statistics, chi2_quantile, relative_pose_errors, relative_pose_nees, rpe_statistics
+from .metrics import ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .odometry import OdometryStep
 
 #: RPE intervals (frames) reported by ``covo run``.
@@ -20,7 +21,7 @@ RPE_DELTAS = (1, 30)
 def consistency_metrics(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> dict:
     """ANEES of rotation and translation (3 dof each) and the share of NEES above chi2(3) 97.5 %."""
     nees_rot, nees_tr = relative_pose_nees(T_est, T_true, covs)
-    upper = chi2_quantile(0.975, 3)
+    upper = CHI2_3_975
     return {
         "anees_translation": float(np.mean(nees_tr)),
         "anees_rotation": float(np.mean(nees_rot)),

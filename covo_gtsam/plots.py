@@ -8,7 +8,8 @@ from typing import Sequence
 import numpy as np
 
 from .geometry import invert_pose
-from .metrics import chi2_pdf, chi2_quantile, relative_pose_nees
+from .chi2 import chi2_pdf, chi2_quantile
+from .metrics import relative_pose_nees
 
 
 def _plt():
