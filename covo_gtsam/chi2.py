@@ -15,8 +15,8 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
-    "CHI2_3_975",
     "CHI2_3_99",
+    "CHI2_3_975",
     "CHI2_6_MEDIAN",
     "SOURCES",
     "SQRT_CHI2_3_95",
