@@ -63,7 +63,7 @@ import numpy as np
 
 from .covariance import check_covariance, check_matrix, ros_to_tangent, tangent_to_ros
 from .errors import InputError
-from .geometry import matrix_to_quat
+from .geometry import matrix_to_quat, quat_to_matrix
 from .odometry import POSED_STATUSES
 
 
@@ -241,7 +241,6 @@ def from_pose_with_covariance(d: dict) -> tuple[gtsam.Pose3, np.ndarray]:
     nq = np.linalg.norm(q)
     if not (np.isfinite(nq) and nq > 0):
         raise InputError(f"orientation quaternion {q.tolist()} is not a valid rotation")
-    qx, qy, qz, qw = q / nq
-    T = gtsam.Pose3(gtsam.Rot3.Quaternion(qw, qx, qy, qz), p)
+    T = gtsam.Pose3(gtsam.Rot3(quat_to_matrix(q)), p)
     cov = ros_to_tangent(c, T)
     return T, 0.5 * (cov + cov.T)

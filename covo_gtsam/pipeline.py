@@ -37,7 +37,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -49,6 +49,9 @@ from .g2o import G2oWriter
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
 from .odometry import OdometryConfig, OdometryStep, VisualOdometry
 from .validation import check_int
+
+if TYPE_CHECKING:
+    from .evaluation import RunEvaluation
 
 
 #: Frames decoded and prepared ahead on worker threads.
@@ -62,9 +65,11 @@ class RunResult:
     """What :func:`run_sequence` produced (also written to disk)."""
 
     out_dir: Path
+    #: the ``metrics.json`` dictionary (``evaluation.to_dict()``)
     metrics: dict
     steps: list[OdometryStep] = field(repr=False)
-    gt_poses: np.ndarray | None = field(default=None, repr=False)
+    #: the statistics and the errors behind them (:class:`~covo_gtsam.evaluation.RunEvaluation`)
+    evaluation: RunEvaluation | None = field(default=None, repr=False)
     #: figures written; None when plots were asked for but matplotlib is not installed
     plot_files: list[Path] | None = field(default_factory=list)
 
@@ -277,15 +282,15 @@ def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig
 
     from .evaluation import evaluate_run
 
-    metrics = evaluate_run(vo.steps, seq, elapsed)
-    metrics["self_calibration"] = vo.self_calibration()
-    write_json(out / "metrics.json", metrics)
-    result = RunResult(out, metrics, vo.steps)
+    evaluation = evaluate_run(vo.steps, seq, elapsed)
+    evaluation.self_calibration = vo.self_calibration()
+    result = RunResult(out, evaluation.to_dict(), vo.steps, evaluation)
+    write_json(out / "metrics.json", result.metrics)
     if plots:
         from .plots import plot_run
 
         try:
-            result.plot_files = plot_run(vo.steps, seq, metrics, out / "plots")
+            result.plot_files = plot_run(vo.steps, evaluation, out / "plots")
         except OSError as exc:
             raise DatasetError(f"{out / 'plots'}: cannot write the figures ({exc.strerror or exc}); "
                                "the other results are complete") from exc

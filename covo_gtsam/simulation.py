@@ -179,9 +179,8 @@ class SimulationResult:
 
     def summary(self) -> dict:
         """JSON-ready metrics: ANEES, share outside chi^2(3) bounds, predicted vs empirical sigmas."""
-        from .metrics import chi2_quantile
+        from .chi2 import CHI2_3_975 as upper
 
-        upper = chi2_quantile(0.975, 3)
         emp = self.empirical_covariance()
         pred = self.mean_predicted_covariance()
         sig = np.sqrt(np.einsum("nii->ni", self.covariances))

@@ -19,6 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from covo_gtsam.calibration import ERROR_TERMS  # noqa: E402
+from covo_gtsam.chi2 import CHI2_3_975  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
 from covo_gtsam.odometry import OdometryConfig  # noqa: E402
@@ -161,7 +162,7 @@ def pair_errors(seq: TumSequence, steps, cfg: OdometryConfig) -> dict:
 def real_tables(data: Path, out_dir: Path, pairs: dict) -> list[str]:
     seqs = sorted(p for p in (data / "tum").iterdir() if (p / "rgb.txt").is_file()) if (data / "tum").is_dir() else []
     lines = ["## Real data (shared TUM frames)", "",
-             "ANEES translation / rotation, then the share of NEES above the chi2(3) 97.5 % quantile (9.35), "
+             f"ANEES translation / rotation, then the share of NEES above the chi2(3) 97.5 % quantile ({CHI2_3_975:.2f}), "
              "and the translational RPE over 30 frames where the sequence is long enough.", ""]
     if not seqs:
         return lines + [f"(no sequences under {data})", ""]

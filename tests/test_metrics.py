@@ -218,11 +218,11 @@ def test_run_metrics_do_not_span_a_restart(random_trajectory):
     stamps, gt = random_trajectory(n=60, seed=3)
     steps, seq = _steps_with_restart(gt, stamps, restart_at=20)
     m = evaluate_run(steps, seq, 1.0)
-    assert m["segments"] == 2
+    assert m.segments == 2
     # exact inside each segment: no pair crosses the gap, each segment is aligned on its own
-    assert m["rpe_1"]["trans_rmse"] < 1e-9 and m["rpe_1"]["n"] == 19 + 39
-    assert m["rpe_30"]["trans_rmse"] < 1e-9 and m["rpe_30"]["n"] == 10  # only the 40-frame segment
-    assert m["ate"]["rmse"] < 1e-9 and m["ate"]["n"] == 60
+    assert m.rpe[1]["trans_rmse"] < 1e-9 and m.rpe[1]["n"] == 19 + 39
+    assert m.rpe[30]["trans_rmse"] < 1e-9 and m.rpe[30]["n"] == 10  # only the 40-frame segment
+    assert m.ate["rmse"] < 1e-9 and m.ate["n"] == 60
     # the same poses read as one segment do show the jump (the check above can fail)
     from covo_gtsam.metrics import rpe
 
@@ -235,4 +235,5 @@ def test_run_metrics_say_none_when_no_pair_is_far_enough_apart(random_trajectory
     stamps, gt = random_trajectory(n=25, seed=4)
     steps, seq = _steps_with_restart(gt, stamps, restart_at=10)
     m = evaluate_run(steps, seq, 1.0)
-    assert m["rpe_30"] is None and m["rpe_1"]["n"] == 9 + 14
+    assert m.rpe[30] is None and m.rpe[1]["n"] == 9 + 14
+    assert m.rpe_errors[30][0].size == 0 and "rpe_30" in m.not_computed

@@ -57,3 +57,24 @@ def test_public_api_is_importable_from_the_package():
 
     with pytest.raises(AttributeError):
         covo_gtsam.no_such_name  # noqa: B018
+    assert set(covo_gtsam.__all__) <= set(dir(covo_gtsam))
+
+
+def test_public_api_covers_the_run_and_its_evaluation():
+    import covo_gtsam
+    from covo_gtsam import RunEvaluation, RunResult, evaluate_run, run_sequence
+    from covo_gtsam.evaluation import RunEvaluation as direct
+
+    assert RunEvaluation is direct and {"ate", "rpe", "relative_pose_nees"} <= set(covo_gtsam.__all__)
+    assert evaluate_run.__module__ == "covo_gtsam.evaluation" and run_sequence.__module__ == "covo_gtsam.pipeline"
+    assert RunResult.__dataclass_fields__["evaluation"]
+
+
+def test_importing_the_package_loads_no_heavy_module():
+    import subprocess
+    import sys
+
+    code = ("import sys, covo_gtsam; heavy = ('numpy', 'gtsam', 'cv2', 'matplotlib', 'scipy'); "
+            "print(sorted(m for m in heavy if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
