@@ -125,10 +125,20 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
 
 
 def rigid_fit(A: np.ndarray, B: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least-squares rigid transform with ``A ≈ R B + t`` (Kabsch / Umeyama, no scale).
+    """Weighted least-squares rigid transform with ``A ≈ R B + t``: :func:`similarity_fit`
+    without scale. Returns ``R`` (..., 3, 3) with det +1 and ``t`` (..., 3)."""
+    R, t, _ = similarity_fit(A, B, weights, with_scale=False)
+    return R, t
 
-    Works on one problem, A and B of shape (N, 3), or on a batch, (H, N, 3) each (e.g. RANSAC
-    hypotheses). Returns ``R`` (..., 3, 3) with det +1 and ``t`` (..., 3).
+
+def similarity_fit(
+    A: np.ndarray, B: np.ndarray, weights: np.ndarray | None = None, with_scale: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | float]:
+    """Weighted least-squares ``(R, t, s)`` with ``A ≈ s R B + t`` (Kabsch; Umeyama 1991 for the scale).
+
+    The package's one point-set alignment: the RANSAC hypotheses, the initial guess and the ATE.
+    Works on one problem, A and B of shape (N, 3), or on a batch, (H, N, 3) each. ``R`` is a
+    proper rotation (det +1, never a reflection); ``s`` is 1.0 unless ``with_scale``.
     """
     A = np.asarray(A, dtype=float)
     B = np.asarray(B, dtype=float)
@@ -140,12 +150,18 @@ def rigid_fit(A: np.ndarray, B: np.ndarray, weights: np.ndarray | None = None) -
     ca = np.einsum("...n,...ni->...i", w, A)
     cb = np.einsum("...n,...ni->...i", w, B)
     H = np.einsum("...n,...ni,...nj->...ij", w, B - cb[..., None, :], A - ca[..., None, :])
-    U, _, Vt = np.linalg.svd(H)
+    U, D, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
-    D = np.zeros(H.shape)
-    D[..., 0, 0] = 1.0
-    D[..., 1, 1] = 1.0
-    D[..., 2, 2] = np.where(d == 0, 1.0, d)
-    R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    d = np.where(d == 0, 1.0, d)
+    S = np.zeros(H.shape)
+    S[..., 0, 0] = 1.0
+    S[..., 1, 1] = 1.0
+    S[..., 2, 2] = d
+    R = np.swapaxes(Vt, -1, -2) @ S @ np.swapaxes(U, -1, -2)
+    if with_scale:  # trace(D S) / weighted variance of B
+        var_b = np.einsum("...n,...n->...", w, np.sum((B - cb[..., None, :]) ** 2, axis=-1))
+        s = (D[..., 0] + D[..., 1] + d * D[..., 2]) / var_b
+        t = ca - s[..., None] * np.einsum("...ij,...j->...i", R, cb)
+        return R, t, (float(s) if np.ndim(s) == 0 else s)
     t = ca - np.einsum("...ij,...j->...i", R, cb)
-    return R, t
+    return R, t, 1.0

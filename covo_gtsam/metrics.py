@@ -12,7 +12,7 @@ import numpy as np
 
 from .chi2 import chi2_cdf, chi2_pdf, chi2_quantile
 from .errors import InputError
-from .geometry import invert_pose, rotation_angle, skew
+from .geometry import invert_pose, rotation_angle, similarity_fit, skew
 
 __all__ = [
     "anees",
@@ -86,7 +86,8 @@ def rpe_statistics(trans_err: np.ndarray, rot_err: np.ndarray, delta: int) -> di
 def umeyama_alignment(
     src: np.ndarray, dst: np.ndarray, with_scale: bool = False
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, s)`` minimising ``sum ||dst_i - (s R src_i + t)||^2`` over points (N, 3) (Umeyama 1991).
+    """``(R, t, s)`` minimising ``sum ||dst_i - (s R src_i + t)||^2`` over points (N, 3) (Umeyama 1991),
+    by :func:`covo_gtsam.geometry.similarity_fit`.
 
     ``R`` is a proper rotation (det +1); ``s`` is 1.0 unless ``with_scale``.
     """
@@ -94,17 +95,7 @@ def umeyama_alignment(
     dst = np.asarray(dst, dtype=float)
     if src.ndim != 2 or src.shape[1] != 3 or src.shape != dst.shape or src.shape[0] < 2:
         raise InputError(f"need two point arrays of the same shape (N>=2, 3), got {src.shape} and {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / src.shape[0]
-    U, D, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    s = float(np.sum(D * np.diag(S)) / np.mean(np.sum(xs**2, axis=1))) if with_scale else 1.0
-    t = mu_d - s * R @ mu_s
-    return R, t, s
+    return similarity_fit(dst, src, with_scale=with_scale)
 
 
 def ate(poses_gt: np.ndarray, poses_est: np.ndarray, with_scale: bool = False) -> dict:

@@ -1,14 +1,14 @@
 """The rigid and similarity fits of point sets against evo's Umeyama alignment and known transforms.
 
-``geometry.rigid_fit`` (weighted, batched: the RANSAC and the initial guess) and
-``metrics.umeyama_alignment`` (the ATE) solve the same least-squares problem.
+``geometry.similarity_fit`` is the package's one point-set alignment: ``geometry.rigid_fit`` (the
+RANSAC and the initial guess) and ``metrics.umeyama_alignment`` (the ATE) call it.
 """
 
 import gtsam
 import numpy as np
 import pytest
 
-from covo_gtsam.geometry import rigid_fit
+from covo_gtsam.geometry import rigid_fit, similarity_fit
 from covo_gtsam.metrics import ate, umeyama_alignment
 
 
@@ -100,3 +100,15 @@ def test_ate_matches_evo_on_a_noisy_trajectory(random_trajectory):
     ours = ate(gt, est)
     for key in ("rmse", "mean", "median", "max"):
         assert ours[key] == pytest.approx(m.get_statistic(getattr(metrics.StatisticsType, key)), rel=1e-10)
+
+
+def test_batched_similarity_fit_matches_evo():
+    from evo.core.geometry import umeyama_alignment as evo_umeyama
+
+    problems = [_problem(n=20, seed=s, noise=0.05, scale=0.5 + s) for s in range(3)]
+    R, t, s = similarity_fit(np.array([p[1] for p in problems]), np.array([p[0] for p in problems]))
+    for k, (src, dst, _, _) in enumerate(problems):
+        R_evo, t_evo, s_evo = evo_umeyama(src.T, dst.T, True)
+        np.testing.assert_allclose(R[k], R_evo, atol=1e-12)
+        np.testing.assert_allclose(t[k], t_evo, atol=1e-12)
+        assert s[k] == pytest.approx(s_evo, rel=1e-12)

@@ -9,12 +9,13 @@ from dataclasses import dataclass
 
 import cv2
 
+from ..chi2 import CHI2_3_99
 from ..errors import ConfigError
 from ..validation import check_choice, check_int, check_real, is_int, is_real
 
 OUTLIER_REJECTIONS = ("rigid3d", "homography", "none")
 #: chi-square(3) 99 % quantile: default gate of the Mahalanobis inlier test.
-CHI2_3DOF_99 = 11.345
+CHI2_3DOF_99 = CHI2_3_99  # the rigid RANSAC's default gate (covo_gtsam.chi2)
 #: Default RANSAC hypotheses / iterations: ``FrontendConfig.ransac_iterations`` and the default of
 #: :func:`~covo_gtsam.frontend.ransac.ransac_rigid3d` and
 #: :func:`~covo_gtsam.frontend.ransac.ransac_homography`.
