@@ -78,6 +78,7 @@ def test_rpe_ate_against_evo_synthetic(random_trajectory):
     check_against_evo(gt, perturb(gt), stamps)
 
 
+@pytest.mark.realdata
 def test_rpe_ate_against_evo_fr1_rpy_groundtruth(fr1_rpy_dir):
     seq = TumSequence(fr1_rpy_dir)
     gt = seq.groundtruth[seq.gt_valid]

@@ -133,6 +133,7 @@ def test_interpolation_degenerate_inputs():
 # ---- real sequences ----------------------------------------------------------------------------
 
 
+@pytest.mark.realdata
 def test_desk_9frames(fr1_desk_dir):
     seq = TumSequence(fr1_desk_dir)
     assert len(seq) == 9
@@ -153,6 +154,7 @@ def test_desk_9frames(fr1_desk_dir):
     assert seq.camera.fx == pytest.approx(517.3)
 
 
+@pytest.mark.realdata
 def test_rpy_head240(fr1_rpy_dir):
     seq = TumSequence(fr1_rpy_dir)
     assert 235 <= len(seq) <= 240
