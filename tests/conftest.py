@@ -47,8 +47,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if unmarked or stray:
         problems = ([f"not marked: {', '.join(unmarked)}"] if unmarked else []) + (
             [f"marked without a real-data fixture: {', '.join(stray)}"] if stray else [])
-        raise pytest.UsageError(f"the realdata marker and the real-data fixtures ({', '.join(sorted(REAL_DATA_FIXTURES))}) "
-                                f"go together; {'; '.join(problems)}")
+        names = ", ".join(sorted(REAL_DATA_FIXTURES))
+        raise pytest.UsageError(f"the realdata marker and the real-data fixtures ({names}) go together; "
+                                + "; ".join(problems))
     if config.getoption("--run-slow"):
         return
     skip_slow = pytest.mark.skip(reason="slow (more than about 2 s): run with --run-slow, as CI does")

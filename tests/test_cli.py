@@ -19,9 +19,10 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from conftest import REPO, SAMPLE_DIR, corrupt_frame, frame_files
 from covo_gtsam import cli
 from covo_gtsam.cli import main
+
+from conftest import REPO, SAMPLE_DIR, corrupt_frame, frame_files
 
 
 class Result(NamedTuple):
@@ -176,9 +177,11 @@ def test_cli_analyze_noise_without_any_analysable_pair(run_cli, small_seq, tmp_p
 
 @pytest.mark.parametrize("args,needle", [(["--seed", "-1"], "--seed"), (["--runs", "0"], "--runs"),
                                          (["--points", "2"], "--points"), (["--pixel-sigma", "0"], "--pixel-sigma"),
-                                         (["--pixel-sigma", "1e-9"], "--pixel-sigma"), (["--max-depth", "inf"], "--max-depth"),
+                                         (["--pixel-sigma", "1e-9"], "--pixel-sigma"),
+                                         (["--max-depth", "inf"], "--max-depth"),
                                          (["--min-depth", "-1"], "--min-depth"), (["--scale", "inf"], "--scale"),
-                                         (["--points", "100000000"], "--points"), (["--pixel-sigma", "1e300"], "--pixel-sigma"),
+                                         (["--points", "100000000"], "--points"),
+                                         (["--pixel-sigma", "1e300"], "--pixel-sigma"),
                                          (["--scale", "1e308"], "--scale")])
 def test_cli_simulate_bad_arguments(run_cli, tmp_path, args, needle):
     assert_argument_error(run_cli(["simulate", *args, "--out", str(tmp_path / "o"), "--no-plots"]), needle)
@@ -244,7 +247,8 @@ def _long_sequence(dst: Path, copies: int) -> Path:
     (dst / "rgb").symlink_to(SAMPLE_DIR / "rgb")
     (dst / "depth").symlink_to(SAMPLE_DIR / "depth")
     for name in ("rgb.txt", "depth.txt"):
-        rows = [ln.split() for ln in (SAMPLE_DIR / name).read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+        text = (SAMPLE_DIR / name).read_text()
+        rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
         stamps = [float(r[0]) for r in rows]
         span = stamps[-1] - stamps[0] + 1 / 30
         lines = [f"{t + k * span:.6f} {r[1]}" for k in range(copies) for t, r in zip(stamps, rows)]

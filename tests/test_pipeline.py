@@ -9,14 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SMALL_SEQ_FRAMES as N_FRAMES
-from conftest import corrupt_frame, frame_files
 from covo_gtsam.cli import main
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
 from covo_gtsam.metrics import chi2_quantile, rpe
 
+from conftest import SMALL_SEQ_FRAMES as N_FRAMES
+from conftest import corrupt_frame, frame_files
 
+
+@pytest.mark.slow
 def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["run", str(sample_dir), "--out", str(out), "--quiet"]) == 0

@@ -64,9 +64,7 @@ def write_bag(path, seq: TumSequence, ros1: bool, colour: str, depth: str, n: in
 
         writer, ser = Writer(path), ts.serialize_ros1
     else:
-        from rosbags.rosbag2 import Writer
-
-        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import StoragePlugin, Writer
 
         plugin = StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
         writer, ser = Writer(path, version=8, storage_plugin=plugin), ts.serialize_cdr
@@ -175,6 +173,7 @@ def _same_trajectory(a, b):
         assert np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(A[:3, :3].T @ B[:3, :3]))) < 1e-6
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys):
     seq = TumSequence(fr1_rpy_dir)
@@ -195,6 +194,7 @@ def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys)
     check_output_bag(tmp_path / "bag_out", tmp_path / "bag_out" / "odometry.bag", FRAME)
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_ros2_bag_bgr8_16uc1_runs_like_the_millimetre_folder(fr1_rpy_dir, tmp_path, capsys):
     seq = TumSequence(fr1_rpy_dir)
@@ -248,7 +248,7 @@ def check_output_bag(out, bag_path, camera_frame):
         assert m.header.frame_id == "odom" and m.child_frame_id == camera_frame
         assert abs(ns * 1e-9 - t) < 1e-6
         np.testing.assert_allclose(_pose(m.pose.pose).matrix(), P, atol=1e-8)
-    for (ns, m), a, b, T in zip(relm, t_ref, t_cur, rel):
+    for (_, m), a, _, T in zip(relm, t_ref, t_cur, rel):
         assert m.header.frame_id == f"{camera_frame}@{a:.6f}"
         np.testing.assert_allclose(_pose(m.pose.pose).matrix(), T, atol=1e-8)
 

@@ -22,6 +22,7 @@ def _evaluate(seqs, out, *extra):
     return _rows(out)
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_evaluate_serial_pool_and_dask_give_the_same_numbers(fr1_rpy_dir, fr1_desk_dir, tmp_path, capsys):
     seqs = [fr1_rpy_dir, fr1_desk_dir]
