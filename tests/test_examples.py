@@ -79,6 +79,7 @@ def test_pose_graph_isam2_rejects_bad_arguments(tmp_path):
     assert proc.returncode == 2 and "error" in proc.stderr
 
 
+@pytest.mark.slow
 def test_compare_covariances(tmp_path):
     summary, stdout = run_example(
         "examples/compare_covariances.py", "--runs", "30", "--seq", SAMPLE, "--out", str(tmp_path))

@@ -125,6 +125,7 @@ def huge_ground_truth(seq: Path, value: str = "1e308") -> None:
         for ln in lines) + "\n")
 
 
+@pytest.mark.slow
 def test_run_with_huge_ground_truth_gives_null_metrics_with_reasons(small_sample, tmp_path, capsys):
     seq, out = small_sample(4), tmp_path / "out"
     huge_ground_truth(seq)

@@ -24,6 +24,7 @@ def error_line(capsys) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 def test_interrupted_rerun_leaves_no_results_of_the_earlier_run(small_sample, tmp_path, monkeypatch, capsys):
     seq, out = small_sample(5), tmp_path / "out"
     assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 0
@@ -49,6 +50,7 @@ def test_interrupted_rerun_leaves_no_results_of_the_earlier_run(small_sample, tm
     assert not any((out / "plots").glob("*.png"))
 
 
+@pytest.mark.slow
 def test_rerun_without_plots_removes_the_earlier_figures(small_sample, tmp_path, capsys):
     seq, out = small_sample(4), tmp_path / "out"
     assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 0
@@ -229,6 +231,7 @@ def test_missing_matplotlib_is_reported_not_silent(small_seq, tmp_path, monkeypa
     assert not (tmp_path / "o" / "plots").exists()
 
 
+@pytest.mark.slow
 def test_rerun_without_ground_truth_removes_stale_plots(small_seq, tmp_path):
     pytest.importorskip("matplotlib")
     out = tmp_path / "o"

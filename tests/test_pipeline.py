@@ -53,6 +53,7 @@ def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     assert {p.name for p in (out / "plots").iterdir()} >= {"trajectory.png", "nees.png", "rpe.png"}
 
 
+@pytest.mark.slow
 def test_relative_file_round_trip_through_metrics(sample_dir, tmp_path):
     out = tmp_path / "o"
     assert main(["run", str(sample_dir), "--out", str(out), "--quiet", "--no-plots"]) == 0
@@ -96,6 +97,7 @@ def test_shared_desk_frames_consistent(fr1_desk_dir, tmp_path):
     assert m["share_nees_rotation_above_chi2_975"] <= 1 / 8
 
 
+@pytest.mark.slow
 def test_analyze_noise_on_sample(sample_dir, tmp_path, capsys):
     out = tmp_path / "noise"
     assert main(["analyze-noise", str(sample_dir), "--out", str(out), "--quiet", "--max-frames", "10"]) == 0
@@ -179,6 +181,7 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
     assert set(bases) == set(ERROR_TERMS)
 
 
+@pytest.mark.slow
 def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     """`covo calibrate` fits the sensor terms on the sample's 39 consecutive pairs, writes
     calibration.json and prints configuration lines that a config file accepts."""

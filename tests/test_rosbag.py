@@ -340,6 +340,7 @@ def test_bag_reader_streams_in_order_with_camera_info(fr1_desk_dir, tmp_path, ki
         np.testing.assert_array_equal(depth, load_depth(seq.depth_paths[i], 5000.0))
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_bag_images_are_streamed_memory_stays_flat(fr1_rpy_dir, tmp_path):
     """Peak memory while decoding a bag's frames one by one does not grow with the bag's length."""

@@ -50,6 +50,7 @@ def test_evaluate_serial_pool_and_dask_give_the_same_numbers(fr1_rpy_dir, fr1_de
         assert a == (tmp_path / "dask" / name / "relative.txt").read_text()
 
 
+@pytest.mark.slow
 def test_simulate_on_workers_and_dask_same_seed_same_numbers(tmp_path):
     base = ["simulate", "--runs", "24", "--points", "60", "--seed", "5", "--no-plots", "--quiet"]
     assert main(base + ["--out", str(tmp_path / "serial")]) == 0
