@@ -156,6 +156,7 @@ def test_progress_line_shows_lost_count(run_cli, small_seq, tmp_path):
     assert proc.returncode == 0
     assert "lost=1" in proc.stderr and "Traceback" not in proc.stderr
 
+
 # -- analyze-noise and simulate arguments ---------------------------------------------------------
 
 def test_cli_analyze_noise_too_few_frames(run_cli, small_seq, tmp_path):
@@ -191,6 +192,7 @@ def test_cli_simulate_depth_range_reversed(run_cli, tmp_path):
     proc = run_cli(["simulate", "--min-depth", "5", "--max-depth", "1", "--out", str(tmp_path / "o"), "--no-plots"])
     assert_clean_error(proc, "--min-depth", "--max-depth")
     assert proc.returncode == 2
+
 
 # -- help and version ----------------------------------------------------------------------------
 
