@@ -22,10 +22,11 @@ from .camera import Camera
 from .covariance import compose_covariance
 from .errors import ConfigError, CovoError, EstimationError, InputError
 from .estimator import ROBUST_KERNELS, RelativePoseResult, estimate_relative_pose
-from .factors import WEIGHTINGS
+from .transfer import WEIGHTINGS
 from .clock import FrameClock, restamp
 from .integrity import IntegrityScale, depth_free_check
-from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
+from .datasets.images import to_grey
+from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 from .frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, rolling_shutter_basis,
                            transfer_gains)
