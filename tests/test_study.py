@@ -67,6 +67,7 @@ def test_simulate_on_workers_and_dask_same_seed_same_numbers(tmp_path):
 
 
 @pytest.mark.realdata
+@pytest.mark.slow  # waits for the connection to the unreachable scheduler to fail
 def test_unreachable_scheduler_and_bad_sequence_are_one_line_exit_2(fr1_desk_dir, tmp_path, capsys):
     pytest.importorskip("dask.distributed")
     assert main(["evaluate", str(fr1_desk_dir), "--out", str(tmp_path / "a"), "--scheduler", "tcp://127.0.0.1:1",
