@@ -4,6 +4,8 @@
     python examples/pose_graph_isam2.py SEQ_DIR [--out DIR] [--max-frames N]
         [--fix-every N] [--fix-sigma M] [--seed S] [--repeat K] [--config FILE] [--no-plots]
 
+The results go to ``--out DIR``; without it, to a new temporary folder (its name is printed).
+
 What it does:
 
 1. Runs :class:`covo_gtsam.odometry.VisualOdometry` over the TUM sequence (through
@@ -57,6 +59,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -178,7 +181,8 @@ def position_nees(poses, marginals, gt_rel, indices) -> np.ndarray:
     return np.array(out)
 
 
-def plot_results(out: Path, variants: dict, gt_rel: dict, vo_poses: dict, fixes: dict, indices: list[int]) -> list[Path]:
+def plot_results(out: Path, variants: dict, gt_rel: dict, vo_poses: dict, fixes: dict,
+                 indices: list[int]) -> list[Path]:
     try:
         import matplotlib
     except ImportError:  # pragma: no cover
@@ -337,9 +341,11 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("seq", metavar="SEQ_DIR", help="TUM RGB-D sequence folder with groundtruth.txt")
-    p.add_argument("--out", default="pose_graph_out", metavar="DIR", help="output folder (default ./pose_graph_out)")
+    p.add_argument("--out", metavar="DIR",
+                   help="output folder (default: a new temporary folder, printed at the end)")
     p.add_argument("--config", metavar="FILE", help="odometry settings, TOML or JSON (as for 'covo run --config')")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="use only the first N frames")
     p.add_argument("--fix-every", type=int, default=30, metavar="N", help="a position fix every N frames (default 30)")
@@ -359,6 +365,8 @@ def main(argv: list[str] | None = None) -> int:
         print("error: --fix-every >= 1, --fix-sigma > 0, --repeat >= 1 and --max-frames >= 2 are required",
               file=sys.stderr)
         return 2
+    if args.out is None:
+        args.out = tempfile.mkdtemp(prefix="covo-pose-graph-")
     try:
         summary = run(args)
     except CovoError as exc:
@@ -377,6 +385,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['unit']['mean']:.4f} | median {r['median']['mean']:.4f}; covo best in "
               f"{summary['repeat_share_covo_best'] * 100:.0f} %, below unit in "
               f"{summary['repeat_share_covo_below_unit'] * 100:.0f} % of the seeds")
+    print(f"results in {args.out}")
     print(json.dumps(summary, default=str))
     return 0
 

@@ -37,8 +37,8 @@ POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_
 #: the thesis's real-data setting: 8 px, its weighting, the published depth model, nothing else
 THESIS_MODEL = dict(POINTS_ONLY, pixel_sigma=8.0, weighting="thesis", depth_sigma_scale=1.0, rolling_shutter_s=0.0)
 REAL_VARIANTS = {
-    "default (consistent, 2 px, frame clock, sensor and frame-level terms, rolling-shutter compensation, integrity check)":
-        OdometryConfig(),
+    "default (consistent, 2 px, frame clock, sensor and frame-level terms, rolling-shutter compensation, "
+    "integrity check)": OdometryConfig(),
     "default without rolling-shutter compensation": OdometryConfig(rolling_shutter_s=0.0),
     "default without the frame clock": OdometryConfig(frame_clock=False),
     "default without the frame-level terms": OdometryConfig(**{name: 0.0 for name in ERROR_TERMS.values()}),
@@ -162,15 +162,16 @@ def pair_errors(seq: TumSequence, steps, cfg: OdometryConfig) -> dict:
 def real_tables(data: Path, out_dir: Path, pairs: dict) -> list[str]:
     seqs = sorted(p for p in (data / "tum").iterdir() if (p / "rgb.txt").is_file()) if (data / "tum").is_dir() else []
     lines = ["## Real data (shared TUM frames)", "",
-             f"ANEES translation / rotation, then the share of NEES above the chi2(3) 97.5 % quantile ({CHI2_3_975:.2f}), "
+             "ANEES translation / rotation, then the share of NEES above the chi2(3) 97.5 % quantile "
+             f"({CHI2_3_975:.2f}), "
              "and the translational RPE over 30 frames where the sequence is long enough.", ""]
     if not seqs:
         return lines + [f"(no sequences under {data})", ""]
     lines += ["| variant | " + " | ".join(s.name for s in seqs) + " |", "|---" * (len(seqs) + 1) + "|"]
-    from covo_gtsam.plots import _plt, nees_histogram
-    from covo_gtsam.metrics import relative_pose_nees
-
     import tempfile
+
+    from covo_gtsam.metrics import relative_pose_nees
+    from covo_gtsam.plots import _plt, nees_histogram
 
     tmp = Path(tempfile.mkdtemp(prefix="covo-study-"))
     for name, cfg in REAL_VARIANTS.items():
@@ -313,8 +314,8 @@ def main() -> None:
     pairs: dict = {}
     lines += real_tables(args.data, fig_dir, pairs)
     lines += depth_scale_table(args.data)
-    lines += ["## Sensor terms", "", "The fit of the sensor terms and its cross-validation (both halves of the shared fr1_rpy "
-              "frames, fr1_desk) are in [cross_validation.md](cross_validation.md) "
+    lines += ["## Sensor terms", "", "The fit of the sensor terms and its cross-validation (both halves of the shared "
+              "fr1_rpy frames, fr1_desk) are in [cross_validation.md](cross_validation.md) "
               "(`python studies/cross_validation.py`).", ""]
     lines += chain_tables(pairs)
     args.out.write_text("\n".join(lines) + "\n")

@@ -51,6 +51,7 @@ def test_log_likelihood_matches_gaussian_density():
         log_likelihood(e, C[:, :5, :5])
 
 
+@pytest.mark.slow
 def test_fit_recovers_the_terms_errors_were_drawn_with():
     """Errors drawn from kappa*P + frame term (2000 pairs) give back kappa, s_r and s_t."""
     rng = np.random.default_rng(2)
@@ -110,6 +111,7 @@ def test_timing_term_matches_monte_carlo_of_stamp_errors():
     np.testing.assert_allclose(C, sensor_covariance(P, 2.0, 0.001, 0.002) + pred)
 
 
+@pytest.mark.slow
 def test_fit_recovers_frame_level_terms():
     """Errors drawn with a timing term (tau 3 ms, over twists of varying speed) and a rank-one
     depth-scale term (0.2 %) give back both sigmas and kappa."""

@@ -78,6 +78,7 @@ def test_restamp_gives_the_motion_between_the_stamps():
     np.testing.assert_allclose(emp, Ad @ C @ Ad.T, atol=0.03 * C.max())
 
 
+@pytest.mark.slow
 def test_repeated_stamp_with_the_clock_gives_no_velocity(sample_dir):
     """A frame that repeats the previous frame's stamp, once the clock is running: tracked, with no
     velocity (no interval to divide by) and a finite covariance; the next frame tracks as usual."""

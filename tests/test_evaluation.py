@@ -14,10 +14,10 @@ GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate",
 
 @pytest.fixture(scope="module")
 def sample_run(tmp_path_factory):
-    from conftest import SAMPLE_DIR
-
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.pipeline import run_sequence
+
+    from conftest import SAMPLE_DIR
 
     out = tmp_path_factory.mktemp("run")
     return run_sequence(TumSequence(SAMPLE_DIR), out, max_frames=35, plots=False, progress=False)

@@ -14,10 +14,10 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
+from covo_gtsam import odometry
 from covo_gtsam.cli import main
 from covo_gtsam.errors import InputError
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
-from covo_gtsam import odometry
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
 #: metrics of covo run that are None exactly when not_computed names them
@@ -124,6 +124,7 @@ def huge_ground_truth(seq: Path, value: str = "1e308") -> None:
         for ln in lines) + "\n")
 
 
+@pytest.mark.slow
 def test_run_with_huge_ground_truth_gives_null_metrics_with_reasons(small_sample, tmp_path, capsys):
     seq, out = small_sample(4), tmp_path / "out"
     huge_ground_truth(seq)
@@ -201,6 +202,7 @@ def fuzz_base(tmp_path_factory):
     return base, names
 
 
+@pytest.mark.slow
 @settings(max_examples=15, deadline=None, derandomize=True, phases=[Phase.explicit, Phase.generate],
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(start=st.sampled_from([0.0, 1305031229.5, -50.0, 1e300]), steps=st.lists(STEPS, min_size=3, max_size=3),

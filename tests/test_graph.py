@@ -227,6 +227,7 @@ def test_ros_round_trip_exact():
         np.testing.assert_allclose(d["position"], T.translation(), atol=0)
 
 
+@pytest.mark.slow
 def test_ros_covariance_matches_monte_carlo_position_and_fixed_axis_rotation():
     """Sample xi ~ N(0, cov), T_true = T Exp(xi) (GTSAM's right perturbation); measure the position
     error t_true - t and the small rotation about the parent's fixed axes Log(R_true R^T). Their

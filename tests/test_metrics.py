@@ -23,7 +23,6 @@ from covo_gtsam.metrics import (
     umeyama_alignment,
 )
 
-
 #: random-walk step of the synthetic trajectories (rad, m)
 STEP = [0.02, 0.02, 0.02, 0.03, 0.03, 0.03]
 
@@ -44,7 +43,8 @@ def evo_metrics(poses_gt, poses_est, stamps, deltas=(1, 30)):
     out = {}
     for delta in deltas:
         for all_pairs in (False, True):
-            for name, rel in (("t", metrics.PoseRelation.translation_part), ("r", metrics.PoseRelation.rotation_angle_deg)):
+            for name, rel in (("t", metrics.PoseRelation.translation_part),
+                              ("r", metrics.PoseRelation.rotation_angle_deg)):
                 m = metrics.RPE(rel, delta, metrics.Unit.frames, all_pairs=all_pairs)
                 m.process_data((ref, est))
                 out[name, delta, all_pairs] = m.get_statistic(metrics.StatisticsType.rmse)
@@ -78,6 +78,7 @@ def test_rpe_ate_against_evo_synthetic(random_trajectory):
     check_against_evo(gt, perturb(gt), stamps)
 
 
+@pytest.mark.realdata
 def test_rpe_ate_against_evo_fr1_rpy_groundtruth(fr1_rpy_dir):
     seq = TumSequence(fr1_rpy_dir)
     gt = seq.groundtruth[seq.gt_valid]

@@ -1,8 +1,10 @@
-"""End to end: `covo run` outputs, their conventions, and the metrics on the shared sequences."""
+"""End to end: `covo run` outputs, their conventions, and the metrics on the shared sequences; bad
+frames inside a sequence."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +14,11 @@ from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
 from covo_gtsam.metrics import chi2_quantile, rpe
 
+from conftest import SMALL_SEQ_FRAMES as N_FRAMES
+from conftest import corrupt_frame, frame_files
 
+
+@pytest.mark.slow
 def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["run", str(sample_dir), "--out", str(out), "--quiet"]) == 0
@@ -47,6 +53,7 @@ def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     assert {p.name for p in (out / "plots").iterdir()} >= {"trajectory.png", "nees.png", "rpe.png"}
 
 
+@pytest.mark.slow
 def test_relative_file_round_trip_through_metrics(sample_dir, tmp_path):
     out = tmp_path / "o"
     assert main(["run", str(sample_dir), "--out", str(out), "--quiet", "--no-plots"]) == 0
@@ -60,6 +67,7 @@ def test_relative_file_round_trip_through_metrics(sample_dir, tmp_path):
     assert rpe(seq.groundtruth, np.array(P), 1)["trans_rmse"] == pytest.approx(m["rpe_1"]["trans_rmse"], rel=1e-6)
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_shared_rpy_sequence_accuracy_and_consistency(fr1_rpy_dir, tmp_path):
     out = tmp_path / "rpy"
@@ -72,6 +80,7 @@ def test_shared_rpy_sequence_accuracy_and_consistency(fr1_rpy_dir, tmp_path):
     assert m["share_nees_rotation_above_chi2_975"] <= 0.10
 
 
+@pytest.mark.realdata
 def test_shared_desk_frames_consistent(fr1_desk_dir, tmp_path):
     out = tmp_path / "desk"
     assert main(["run", str(fr1_desk_dir), "--out", str(out), "--quiet", "--no-plots"]) == 0
@@ -88,6 +97,7 @@ def test_shared_desk_frames_consistent(fr1_desk_dir, tmp_path):
     assert m["share_nees_rotation_above_chi2_975"] <= 1 / 8
 
 
+@pytest.mark.slow
 def test_analyze_noise_on_sample(sample_dir, tmp_path, capsys):
     out = tmp_path / "noise"
     assert main(["analyze-noise", str(sample_dir), "--out", str(out), "--quiet", "--max-frames", "10"]) == 0
@@ -133,6 +143,7 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
         VisualOdometry(seq.camera, OdometryConfig(motion_model="fast"))
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_dir, tmp_path):
     """The defaults of correlation_factor, the frame sigmas and the default frame-level terms are the
@@ -169,6 +180,7 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
     assert set(bases) == set(ERROR_TERMS)
 
 
+@pytest.mark.slow
 def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     """`covo calibrate` fits the sensor terms on the sample's 39 consecutive pairs, writes
     calibration.json and prints configuration lines that a config file accepts."""
@@ -203,6 +215,7 @@ def test_calibrate_without_ground_truth_is_a_clear_error(sample_dir, tmp_path, c
     assert "needs ground truth" in err and "Traceback" not in err
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_default_depth_sigma_scale_minimises_rpe1_on_the_first_half_of_fr1_rpy(fr1_rpy_dir, tmp_path):
     """depth_sigma_scale is the value with the smallest translational RPE over 1 frame on frames
@@ -240,3 +253,40 @@ def test_kernel_threads_limits_opencv_and_blas_and_restores_them():
         assert cv2.getNumThreads() == 1
         assert all(n == 1 for n in blas_threads())
     assert cv2.getNumThreads() == cv_before and blas_threads() == blas_before
+
+
+# -- bad frames inside a sequence: the frame is lost, the run goes on ------------------------------
+
+def run_and_load(seq: Path, out: Path, progress: bool = False) -> tuple[dict, tuple]:
+    args = ["run", str(seq), "--out", str(out), "--no-plots"] + ([] if progress else ["--quiet"])
+    assert main(args) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    return m, load_relative_poses(out / "relative.txt")
+
+
+@pytest.mark.parametrize("kind", ["truncated", "random", "small", "depth8", "zero_depth", "uniform", "jump"])
+def test_bad_frame_is_lost_and_run_continues(small_seq, tmp_path, kind):
+    t_bad = corrupt_frame(small_seq, 3, kind)
+    _, _, t_prev = frame_files(small_seq, 2)
+    m, (t_ref, t_cur, rel, covs) = run_and_load(small_seq, tmp_path / "o")
+    assert m["lost_frames"] == 1, m["lost"]
+    assert m["restarts"] == []
+    assert m["lost"][0]["timestamp"] == pytest.approx(t_bad) and m["lost"][0]["reason"]
+    assert m["tracked_frames"] == N_FRAMES - 1
+    # the frame after the lost one is matched to the last good one
+    k = int(np.argmin(np.abs(t_cur - frame_files(small_seq, 4)[2])))
+    assert t_ref[k] == pytest.approx(t_prev, abs=1e-6)
+    assert np.all(np.isfinite(rel)) and np.all(np.isfinite(covs))
+    stamps, _ = load_tum_trajectory(tmp_path / "o" / "trajectory.txt")
+    assert len(stamps) == N_FRAMES - 1
+
+
+@pytest.mark.parametrize("max_frames", [-5, 0, 2.5, True, "3"])
+def test_run_sequence_rejects_bad_max_frames(small_seq, tmp_path, max_frames):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.pipeline import run_sequence
+
+    with pytest.raises(ConfigError, match="max_frames"):
+        run_sequence(TumSequence(small_seq), tmp_path / "o", max_frames=max_frames, plots=False, progress=False)
+    assert not (tmp_path / "o").exists()

@@ -78,3 +78,14 @@ def test_importing_the_package_loads_no_heavy_module():
             "print(sorted(m for m in heavy if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_quick_start_test_command_is_the_one_ci_runs():
+    """.ci/run installs and runs the tests exactly as the README's quick start says: the whole
+    suite, slow tests included."""
+    quick_start = re.search(r"## Quick start\n.*?```bash\n(.*?)```", README.read_text(), flags=re.S).group(1)
+    command = quick_start.strip().splitlines()[-1]  # the second command
+    ci = (README.parent / ".ci" / "run").read_text().splitlines()
+    install, pytest_line = command.split(" && ")[-2:]
+    assert install in ci and pytest_line in ci
+    assert "--run-slow" in pytest_line.split()

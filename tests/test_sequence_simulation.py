@@ -18,6 +18,7 @@ TRUTH = OdometryConfig(pixel_sigma=1.0, depth_sigma_scale=1.0, correlation_facto
 CLEAN = dict(stamp_jitter_s=0.0, readout_s=0.0, depth_offset_s=(0.0, 0.0), depth_scale_sigma=0.0, bad_frame_rate=0.0)
 
 
+@pytest.mark.slow
 def test_clean_sequence_is_consistent():
     """Pixel and depth noise only, the odometry told their true size: ANEES within the 95 % band."""
     r = simulate_sequence(SequenceSimulationConfig(frames=120, **CLEAN),
@@ -29,6 +30,7 @@ def test_clean_sequence_is_consistent():
     assert lo <= nt.mean() <= hi and lo <= nr.mean() <= hi
 
 
+@pytest.mark.slow
 def test_injected_sources_make_the_per_point_model_overconfident():
     """The same odometry on a sequence with stamp jitter, colour-depth offsets and a rolling
     shutter: far outside the band (so the check above can fail)."""
@@ -37,6 +39,7 @@ def test_injected_sources_make_the_per_point_model_overconfident():
     assert max(nt.mean(), nr.mean()) > 6
 
 
+@pytest.mark.slow
 def test_frame_clock_recovers_the_injected_period_and_stamp_offsets():
     cfg = SequenceSimulationConfig(frames=150, period_s=1 / 29.5, stamp_jitter_s=0.003, bad_frame_rate=0.0)
     r = simulate_sequence(cfg, OdometryConfig())
