@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import warnings
 from pathlib import Path
 
 from .errors import ConfigError, CovoError
@@ -57,16 +58,13 @@ def _float_in(minimum: float | None = None, maximum: float | None = None):
 
 
 def load_config_file(path: str):
-    """Read an odometry configuration from a TOML (.toml) or JSON file."""
-    from .io import read_settings_file
-    from .odometry import OdometryConfig
+    """Deprecated: :func:`covo_gtsam.config.load_config` (removed from the command line module in
+    the next release)."""
+    from .config import load_config
 
-    p = Path(path)
-    data = read_settings_file(p, "configuration file")
-    try:
-        return OdometryConfig.from_dict(data)
-    except ConfigError as exc:
-        raise ConfigError(f"{p}: {exc}") from exc
+    warnings.warn("covo_gtsam.cli.load_config_file is deprecated; use covo_gtsam.config.load_config",
+                  DeprecationWarning, stacklevel=2)
+    return load_config(path)
 
 
 #: Exit code of ``covo run`` when no frame could be tracked (the results folder is still written).
@@ -78,9 +76,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     config = _load_config(args)
     if args.weighting:
-        config = _replace(config, weighting=args.weighting)
+        config = config.replace(estimator={"weighting": args.weighting})
     if args.scale is not None:
-        config = _replace(config, scale=args.scale)
+        config = config.replace(estimator={"scale": args.scale})
     seq = _sequence(args)
     _check_config_fits(args, config, seq)
     if args.bag_out:
@@ -117,12 +115,20 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _load_config(args: argparse.Namespace):
     """The odometry configuration of ``--config``, or the default one; a ``--camera`` file's
-    ``depth_scale`` replaces the configuration's."""
-    from .odometry import OdometryConfig
+    ``depth_scale`` replaces the configuration's. A deprecation of the file's form is one
+    ``covo: warning:`` line on stderr (unless Python's warnings options say otherwise)."""
+    from .config import OdometryConfig, load_config
 
-    config = load_config_file(args.config) if args.config else OdometryConfig()
+    config = OdometryConfig()
+    if args.config:
+        with warnings.catch_warnings(record=True) as caught:
+            if not sys.warnoptions:
+                warnings.simplefilter("default", DeprecationWarning)
+            config = load_config(args.config)
+        for w in caught:
+            print(f"covo: warning: {w.message}", file=sys.stderr)
     _, depth_scale = _camera(args)
-    return config if depth_scale is None else _replace(config, depth_scale=depth_scale)
+    return config if depth_scale is None else config.replace(sensor={"depth_scale": depth_scale})
 
 
 def _camera(args: argparse.Namespace):
@@ -156,12 +162,6 @@ def _check_config_fits(args: argparse.Namespace, config, seq) -> None:
             config.frontend.check_image_size(seq.camera.width, seq.camera.height)
         except ConfigError as exc:
             raise ConfigError(f"{args.config}: {exc}") from exc
-
-
-def _replace(config, **kw):
-    import dataclasses
-
-    return dataclasses.replace(config, **kw)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -288,6 +288,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                  if anees_t is not None and anees_r is not None else "no ANEES (see per_point_run/metrics.json)")
         print(f"{fit.pairs} consecutive pairs with ground truth; the per-point model alone gives {anees}")
         print("maximum-likelihood sensor terms (configuration lines):")
+        print("[sensor]")
         for name, value in fit.config_values().items():
             print(f"{name} = {value:.3g}")
         print(f"results in {out}")

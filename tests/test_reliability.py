@@ -83,16 +83,21 @@ def test_cli_no_frame_has_both_images(small_seq, tmp_path):
 
 
 @pytest.mark.parametrize("content,needle", [("{not json", "not a valid JSON"), ('{"pixel_sigmaa": 2}', "unknown"),
-                                            (None, "cannot read"), ('{"weighting": "fancy"}', "unknown weighting"),
-                                            ('{"robust": "tukey"}', "unknown robust"),
-                                            ('{"motion_model": "fast"}', "unknown motion_model"),
-                                            ('{"pixel_sigma": -1}', "pixel_sigma must be a positive"),
-                                            ('{"frame_sigma_trans_m": "x"}', "frame_sigma_trans_m must be"),
-                                            ('{"restart_after": 0}', "restart_after must be"),
+                                            ('{"noise": {"pixel_sigmaa": 2}}', "unknown configuration keys: noise."),
+                                            (None, "cannot read"),
+                                            ('{"estimator": {"weighting": "fancy"}}', "unknown estimator.weighting"),
+                                            ('{"estimator": {"robust": "tukey"}}', "unknown estimator.robust"),
+                                            ('{"tracking": {"motion_model": "fast"}}', "unknown tracking.motion_model"),
+                                            ('{"noise": {"pixel_sigma": -1}}', "noise.pixel_sigma must be a positive"),
+                                            ('{"sensor": {"frame_sigma_trans_m": "x"}}', "frame_sigma_trans_m must be"),
+                                            ('{"tracking": {"restart_after": 0}}', "restart_after must be"),
                                             ('{"frontend": 5}', "frontend must be a table"),
                                             ('{"frontend": "abc"}', "frontend must be a table"),
-                                            ('{"keyframes": "false"}', "keyframes must be true or false"),
-                                            ('{"pixel_sigma": true}', "pixel_sigma must be a positive"),
+                                            ('{"sensor": 5}', "sensor must be a table"),
+                                            ('{"tracking": {"keyframes": "false"}}', "keyframes must be true or false"),
+                                            ('{"noise": {"pixel_sigma": true}}', "pixel_sigma must be a positive"),
+                                            ('{"pixel_sigma": true}', "noise.pixel_sigma must be a positive"),
+                                            ('{"pixel_sigma": 1, "noise": {"pixel_sigma": 2}}', "given twice"),
                                             ('{"frontend": {"scale_factor": 1e300}}', "frontend.scale_factor"),
                                             ('{"frontend": {"n_levels": 100000}}', "frontend.n_levels"),
                                             ('{"frontend": {"patch_size": 100000}}', "frontend.patch_size"),
@@ -299,29 +304,25 @@ def _bad_values(default) -> list:
 def _config_cases():
     import dataclasses
 
-    from covo_gtsam.frontend import FrontendConfig
-    from covo_gtsam.odometry import OdometryConfig
+    from covo_gtsam.config import GROUPS
 
-    for cls, prefix in ((OdometryConfig, ""), (FrontendConfig, "frontend.")):
+    for group, cls in GROUPS.items():
         for f in dataclasses.fields(cls):
-            if f.name == "frontend":
-                continue
             default = getattr(cls(), f.name)
             for bad in _bad_values(default):
                 if f.name == "robust" and bad is None:
                     continue  # None is a valid kernel choice
-                yield pytest.param(prefix, f.name, bad, id=f"{prefix}{f.name}={bad!r}")
+                yield pytest.param(group, f.name, bad, id=f"{group}.{f.name}={bad!r}")
 
 
-@pytest.mark.parametrize("prefix,name,bad", list(_config_cases()))
-def test_every_config_field_rejects_wrong_types(prefix, name, bad):
+@pytest.mark.parametrize("group,name,bad", list(_config_cases()))
+def test_every_config_field_rejects_wrong_types(group, name, bad):
     from covo_gtsam.errors import ConfigError
     from covo_gtsam.odometry import OdometryConfig
 
-    data = {"frontend": {name: bad}} if prefix else {name: bad}
     with pytest.raises(ConfigError) as info:
-        OdometryConfig.from_dict(data)
-    assert name in str(info.value)
+        OdometryConfig.from_dict({group: {name: bad}})
+    assert f"{group}.{name}" in str(info.value)
 
 
 def test_config_accepts_its_own_dict_and_numpy_scalars():
@@ -330,8 +331,8 @@ def test_config_accepts_its_own_dict_and_numpy_scalars():
     cfg = OdometryConfig()
     assert OdometryConfig.from_dict(cfg.to_dict()) == cfg
     assert OdometryConfig.from_dict({"frontend": None}) == cfg
-    OdometryConfig.from_dict({"pixel_sigma": np.float32(1.5), "restart_after": np.int64(3), "keyframes": np.bool_(True),
-                              "frontend": {"n_features": np.int32(500), "scale_factor": 2}})
+    OdometryConfig.from_dict({"noise": {"pixel_sigma": np.float32(1.5)}, "tracking": {"restart_after": np.int64(3),
+                              "keyframes": np.bool_(True)}, "frontend": {"n_features": np.int32(500), "scale_factor": 2}})
 
 
 def test_orb_pyramid_and_patch_must_fit_the_camera():
