@@ -188,25 +188,26 @@ def test_run_restarts_after_a_run_of_lost_frames(sample_dir):
     from covo_gtsam.odometry import OdometryConfig
 
     seq = TumSequence(sample_dir)
-    cfg = OdometryConfig(restart_after=3)
+    cfg = OdometryConfig().replace(tracking={"restart_after": 3})
     vo = VisualOdometry(seq.camera, cfg)
-    statuses = []
+    steps = []
     for i in range(10):
         img = cv2.imread(seq.rgb_paths[i])
         if i in (3, 4):
             img = np.full_like(img, 128)
         elif i >= 5:
             img = np.ascontiguousarray(np.roll(img[::-1, ::-1], 200, axis=1))
-        statuses.append(vo.register_frame(img, load_depth(seq.depth_paths[i]), seq.timestamps[i]).status)
+        steps.append(vo.register_frame(img, load_depth(seq.depth_paths[i]), seq.timestamps[i]))
+    statuses = [s.status for s in steps]
     # 3, 4 blank and 5 (flipped) lost; 6 cannot be matched to frame 2 either and restarts
     assert statuses == ["first", "tracked", "tracked", "lost", "lost", "lost", "restart",
                         "tracked", "tracked", "tracked"], statuses
-    last, restart = vo.steps[2], vo.steps[6]
+    last, restart = steps[2], steps[6]
     assert restart.relative is None and "3 lost frames" in restart.reason
     assert np.allclose(restart.pose.matrix(), last.pose.matrix())
     assert np.allclose(restart.pose_covariance, last.pose_covariance + cfg.gap_noise())
-    assert vo.steps[7].ref_timestamp == pytest.approx(restart.timestamp)
-    factors, initial = between_factors(vo.steps)
+    assert steps[7].ref_timestamp == pytest.approx(restart.timestamp)
+    factors, initial = between_factors(steps)
     assert len(factors) == 2 + 3 and initial.size() == 7  # no factor across the gap
 
 
@@ -331,8 +332,9 @@ def test_config_accepts_its_own_dict_and_numpy_scalars():
     cfg = OdometryConfig()
     assert OdometryConfig.from_dict(cfg.to_dict()) == cfg
     assert OdometryConfig.from_dict({"frontend": None}) == cfg
-    OdometryConfig.from_dict({"noise": {"pixel_sigma": np.float32(1.5)}, "tracking": {"restart_after": np.int64(3),
-                              "keyframes": np.bool_(True)}, "frontend": {"n_features": np.int32(500), "scale_factor": 2}})
+    OdometryConfig.from_dict({"noise": {"pixel_sigma": np.float32(1.5)},
+                              "tracking": {"restart_after": np.int64(3), "keyframes": np.bool_(True)},
+                              "frontend": {"n_features": np.int32(500), "scale_factor": 2}})
 
 
 def test_orb_pyramid_and_patch_must_fit_the_camera():
@@ -521,7 +523,7 @@ def test_register_frame_rejects_bad_timestamps(sample_dir):
             vo.register_frame(frame, timestamp=bad)
     with pytest.raises(InputError, match="earlier"):
         vo.mark_lost(9.0, "unreadable")
-    assert len(vo.steps) == 1  # rejected frames are not recorded
+    assert vo._last_stamp == 10.0  # rejected frames are not recorded
     # a repeated stamp is accepted (no velocity over a zero interval)
     step = vo.register_frame(frame, timestamp=10.0)
     assert step.tracked and step.velocity is None and np.all(np.isfinite(step.covariance))
@@ -595,16 +597,16 @@ def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
 
     seq = TumSequence(sample_dir)
     # the frame term alone: no frame-level terms, no restamping by the frame clock
-    cfg = OdometryConfig(frame_clock=False, **{name: 0.0 for name in ERROR_TERMS.values()})
+    cfg = OdometryConfig().replace(sensor={"frame_clock": False, **{name: 0.0 for name in ERROR_TERMS.values()}})
     vo = VisualOdometry(seq.camera, cfg)
     steps = [vo.register_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i])
              for i in (0, 1, 3)]
     assert [s.status for s in steps] == ["first", "tracked", "tracked"]
     for step, k in ((steps[1], 1), (steps[2], 2)):
         assert cfg.frame_intervals(step.timestamp - step.ref_timestamp) == k
-        r2, t2 = np.deg2rad(cfg.frame_sigma_rot_deg) ** 2, cfg.frame_sigma_trans_m**2
+        r2, t2 = np.deg2rad(cfg.sensor.frame_sigma_rot_deg) ** 2, cfg.sensor.frame_sigma_trans_m**2
         frame = np.diag([r2 * k] * 3 + [t2 * k * k] * 3)
         np.testing.assert_allclose(cfg.frame_noise(step.timestamp - step.ref_timestamp), frame, rtol=1e-12)
-        np.testing.assert_allclose(step.covariance, cfg.correlation_factor * step.result.covariance + frame,
+        np.testing.assert_allclose(step.covariance, cfg.sensor.correlation_factor * step.result.covariance + frame,
                                    rtol=1e-12)
     assert cfg.frame_intervals(0.0) == 1 and cfg.frame_intervals(0.040) == 1 and cfg.frame_intervals(0.1) == 3
