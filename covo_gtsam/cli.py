@@ -57,6 +57,17 @@ def _float_in(minimum: float | None = None, maximum: float | None = None):
     return parse
 
 
+def _setting(cls, name: str):
+    """argparse type of the declared setting ``name`` of the settings class ``cls``: its range as
+    declared (:mod:`covo_gtsam.validation`)."""
+    import dataclasses
+
+    meta = next(f for f in dataclasses.fields(cls) if f.name == name).metadata
+    if meta["kind"] == "int":
+        return _int_in(meta["minimum"], meta["maximum"])
+    return _float_in(meta["minimum"], meta["maximum"])
+
+
 def load_config_file(path: str):
     """Deprecated: :func:`covo_gtsam.config.load_config` (removed from the command line module in
     the next release)."""
@@ -369,9 +380,11 @@ def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentPa
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .factors import WEIGHTINGS
-    from .simulation import MAX_DEPTH, MAX_POINTS, MAX_RUNS
-    from .validation import MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA
+    from .choices import Weighting
+    from .config import EstimatorConfig, NoiseConfig
+    from .simulation import MAX_DEPTH, SimulationConfig
+
+    weightings = [w.value for w in Weighting]
 
     parser = argparse.ArgumentParser(
         prog="covo",
@@ -397,8 +410,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--max-frames", type=_int_in(1), metavar="N",
                      help="process only the first N frames (default: all)")
     run.add_argument("--config", metavar="FILE", help="TOML or JSON settings (see README: configuration)")
-    run.add_argument("--weighting", choices=WEIGHTINGS, help="residual weighting (default: consistent)")
-    run.add_argument("--scale", type=_float_in(maximum=MAX_SCALE), metavar="PHI",
+    run.add_argument("--weighting", choices=weightings, help="residual weighting (default: consistent)")
+    run.add_argument("--scale", type=_setting(EstimatorConfig, "scale"), metavar="PHI",
                      help="the thesis's covariance scale phi: multiplies each pair's point-transfer "
                      "covariance inside the estimator; the calibrated sensor terms are applied after (default 1)")
     run.add_argument("--bag-out", choices=["ros1", "ros2"],
@@ -414,16 +427,16 @@ def build_parser() -> argparse.ArgumentParser:
         "[0.6 0.6 0.05 | -0.183 -0.183 0 0.966], pixel noise and Kinect depth noise. Writes metrics.json "
         "(ANEES, predicted vs empirical sigmas) and plots/ into OUT.",
     )
-    sim.add_argument("--runs", type=_int_in(1, MAX_RUNS), default=1000, metavar="N",
+    sim.add_argument("--runs", type=_setting(SimulationConfig, "runs"), default=1000, metavar="N",
                      help="Monte Carlo runs (default 1000)")
-    sim.add_argument("--seed", type=_int_in(0), default=0, metavar="S", help="random seed, >= 0 (default 0)")
-    sim.add_argument("--weighting", choices=WEIGHTINGS, default="consistent",
+    sim.add_argument("--seed", type=_setting(SimulationConfig, "seed"), default=0, metavar="S", help="random seed, >= 0 (default 0)")
+    sim.add_argument("--weighting", choices=weightings, default="consistent",
                      help="residual weighting (default: consistent)")
-    sim.add_argument("--scale", type=_float_in(maximum=MAX_SCALE), default=1.0, metavar="PHI",
+    sim.add_argument("--scale", type=_setting(SimulationConfig, "scale"), default=1.0, metavar="PHI",
                      help="covariance scale phi (thesis: 16; default 1)")
-    sim.add_argument("--pixel-sigma", type=_float_in(MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA), default=8.0, metavar="PX",
+    sim.add_argument("--pixel-sigma", type=_setting(SimulationConfig, "pixel_sigma"), default=8.0, metavar="PX",
                      help="pixel noise standard deviation in pixels (default 8)")
-    sim.add_argument("--points", type=_int_in(3, MAX_POINTS), default=500, metavar="N",
+    sim.add_argument("--points", type=_setting(SimulationConfig, "num_points"), default=500, metavar="N",
                      help="points per run (default 500)")
     sim.add_argument("--min-depth", type=_float_in(maximum=MAX_DEPTH), default=0.5, metavar="M",
                      help="nearest depth (default 0.5 m)")
@@ -459,7 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
     _sequence_arguments(noise, "TUM RGB-D sequence folder with groundtruth.txt")
     noise.add_argument("--max-frames", type=_int_in(2), metavar="N",
                        help="only the first N frames (at least 2; default: all)")
-    noise.add_argument("--pixel-sigma", type=_float_in(MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA), default=2.0,
+    noise.add_argument("--pixel-sigma", type=_setting(NoiseConfig, "pixel_sigma"), default=2.0,
                        metavar="PX",
                        help="pixel noise used by the outlier gate (default 2)")
     _output_arguments(noise)
