@@ -404,7 +404,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run visual odometry on a TUM RGB-D sequence folder (rgb.txt, depth.txt, rgb/, depth/, "
         "optional groundtruth.txt) or a ROS bag (ROS 1 .bag file or ROS 2 bag folder; ground truth from /tf) "
         "and write trajectory.txt (TUM format), relative.txt (relative poses with 6x6 covariances), graph.g2o "
-        "(pose graph), metrics.json and plots/ into OUT.",
+        "(pose graph), metrics.json, config.toml (the configuration used; --config OUT/config.toml repeats the run) "
+        "and plots/ into OUT.",
     )
     _sequence_arguments(run, "TUM RGB-D sequence folder, ROS 1 .bag file or ROS 2 bag folder", bags=True)
     run.add_argument("--max-frames", type=_int_in(1), metavar="N",
@@ -429,7 +430,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("--runs", type=_setting(SimulationConfig, "runs"), default=1000, metavar="N",
                      help="Monte Carlo runs (default 1000)")
-    sim.add_argument("--seed", type=_setting(SimulationConfig, "seed"), default=0, metavar="S", help="random seed, >= 0 (default 0)")
+    sim.add_argument("--seed", type=_setting(SimulationConfig, "seed"), default=0, metavar="S",
+                     help="random seed, >= 0 (default 0)")
     sim.add_argument("--weighting", choices=weightings, default="consistent",
                      help="residual weighting (default: consistent)")
     sim.add_argument("--scale", type=_setting(SimulationConfig, "scale"), default=1.0, metavar="PHI",

@@ -107,7 +107,7 @@ class SensorConfig:
 
     section: ClassVar[str] = "sensor"
 
-    depth_scale: float = number(5000.0, "raw integer depth values per metre (TUM: 5000)", "1/m", maximum=1e9)
+    depth_scale: float = number(5000.0, "raw integer depth values per metre (TUM: 5000)", "raw/m", maximum=1e9)
     frame_interval_s: float = number(1.0 / 30.0, "the camera's nominal frame period", "s", minimum=1e-4,
                                      maximum=1e3)
     rolling_shutter_s: float = number(0.025, "colour readout time from the top row to the bottom row; 0 turns "
@@ -150,7 +150,8 @@ class SensorConfig:
         """6x6 frame term (tangent [omega, v]) of a pair whose frames are ``dt`` seconds apart,
         ``k = frame_intervals(dt)`` (1 if None): per axis ``frame_sigma_rot_deg^2 k`` and
         ``frame_sigma_trans_m^2 k^2`` (:func:`covo_gtsam.calibration.frame_covariance`)."""
-        return frame_covariance(np.deg2rad(self.frame_sigma_rot_deg), self.frame_sigma_trans_m, self.frame_intervals(dt))
+        return frame_covariance(np.deg2rad(self.frame_sigma_rot_deg), self.frame_sigma_trans_m,
+                                self.frame_intervals(dt))
 
     def sensor_covariance(self, point_covariance: np.ndarray, dt: float | None = None,
                           bases: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
@@ -309,7 +310,8 @@ class OdometryConfig:
             tables[name] = dict(table)
         flat = {k: v for k, v in d.items() if k in FLAT_NAMES}
         unknown = sorted(map(str, set(d) - set(flat))) + sorted(
-            f"{name}.{k}" for name, table in tables.items() for k in set(table) - {f.name for f in declared(GROUPS[name])})
+            f"{name}.{k}" for name, table in tables.items()
+            for k in set(table) - {f.name for f in declared(GROUPS[name])})
         if unknown:
             raise ConfigError(f"unknown configuration keys: {', '.join(unknown)}")
         twice = sorted(k for k in flat if k in tables[FLAT_NAMES[k]])
@@ -416,7 +418,10 @@ def settings_table() -> str:
     for name in GROUPS:
         for f in declared(GROUPS[name]):
             value = defaults[name][f.name]
-            shown = "unset" if value is None else _toml_value(value) if not isinstance(value, float) else f"{value:.6g}"
+            if value is None:
+                shown = '"none"' if f.metadata["kind"] == "choice" else "unset"
+            else:
+                shown = f"{value:.6g}" if isinstance(value, float) else _toml_value(value)
             rows.append(f"| `{name}.{f.name}` | {shown} | {f.metadata['unit']} | {range_text(f)} | "
                         f"{f.metadata['doc']} |")
     return "\n".join(rows) + "\n"

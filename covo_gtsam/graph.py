@@ -15,10 +15,10 @@ pair plus initial values::
 
 Keys: every step that has a pose (status ``"first"``, ``"tracked"`` or ``"restart"``) gets the key
 ``gtsam.symbol(prefix, i)`` where ``i`` is its position in ``steps``. For a
-:class:`~covo_gtsam.steps.StepHistory` and ``RunResult.steps`` -- one step per frame, lost frames included -- ``i`` is therefore the frame
-index in the sequence, so keys stay tied to frames and lost frames simply have no key (gaps in
-``i``). A custom ``key(i)`` may replace the symbol, or ``key(timestamp)`` with
-``key_by="timestamp"``.
+:class:`~covo_gtsam.steps.StepHistory` and ``RunResult.steps`` -- one step per frame, lost frames
+included -- ``i`` is therefore the frame index in the sequence, so keys stay tied to frames and
+lost frames simply have no key (gaps in ``i``). A custom ``key(i)`` may replace the symbol, or
+``key(timestamp)`` with ``key_by="timestamp"``.
 
 Factors: for each ``"tracked"`` step, ``BetweenFactorPose3(key(ref), key(cur), T_ref,cur,
 noise)`` where ``ref`` is the step whose timestamp is ``step.ref_timestamp``. GTSAM's
@@ -115,7 +115,8 @@ def between_factors(
     """Between factors of the tracked steps and the composed absolute poses as initial values.
 
     Args:
-        steps: :class:`~covo_gtsam.odometry.OdometryStep` sequence in time order (``RunResult.steps``, a :class:`~covo_gtsam.steps.StepHistory`).
+        steps: :class:`~covo_gtsam.steps.OdometryStep` sequence in time order (``RunResult.steps``,
+            a :class:`~covo_gtsam.steps.StepHistory`).
         key: optional ``key(i)`` (or ``key(timestamp)``, see ``key_by``) -> GTSAM key.
         prefix: symbol character of the default keys ``gtsam.symbol(prefix, i)``.
         key_by: ``"index"`` (position in ``steps``) or ``"timestamp"``: what ``key`` receives.

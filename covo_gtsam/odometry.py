@@ -411,7 +411,8 @@ class VisualOdometry:
             if ref_step.velocity is not None:
                 u = B @ (0.5 * (velocity - np.asarray(ref_step.velocity)))
             else:
-                rows_ref = row_time_offsets(pairs.uv_ref[:, 1], self.camera.height, self.config.sensor.rolling_shutter_s)
+                rows_ref = row_time_offsets(pairs.uv_ref[:, 1], self.camera.height,
+                                            self.config.sensor.rolling_shutter_s)
                 u = (B + rolling_shutter_basis(G_ref, X_ref, rows_ref)) @ (0.5 * velocity)
             bases["rolling_shutter"] = np.outer(u, u)
         return bases

@@ -204,10 +204,11 @@ def run_sequence(
     integer >= 1, or None for all) limits the frames processed; ``bag_out`` (``"ros1"``,
     ``"ros2"`` or None) also writes the odometry as a ROS bag.
 
-    The folder is checked before the first frame (``trajectory.txt``, ``relative.txt``,
-    ``metrics.json`` and, with ``plots``, the figures of ``plots/`` must be writable) and the
-    results of an earlier run of those names are removed, so the folder describes one run; an
-    interrupted run leaves its text files (valid up to the last line) and no ``metrics.json``.
+    The folder is checked before the first frame (the files of :data:`RUN_FILES` and, with
+    ``plots``, the figures of ``plots/`` must be writable) and the results of an earlier run of
+    those names are removed, so the folder describes one run; ``config.toml`` (``config``, which
+    ``--config`` reads back) is written first. An interrupted run leaves its text files (valid up
+    to the last line) and no ``metrics.json``.
     The folder is locked while the run writes into it.
 
     Raises:
