@@ -1,17 +1,14 @@
 """Streaming RGB-D visual odometry: one entry point, :meth:`VisualOdometry.register_frame`.
 
-Data flow per frame: colour + depth -> ORB features and per-keypoint 3D points with covariances
-(:mod:`covo_gtsam.frontend`) -> matched point pairs with the reference frame -> relative pose
-``T_ref,cur`` and its covariance (:mod:`covo_gtsam.estimator`, the sensor terms of
-:class:`~covo_gtsam.config.SensorConfig`) -> absolute pose ``T_world,cur`` (world = the first
-posed camera frame) with a first-order composed covariance. Settings: :mod:`covo_gtsam.config`;
-what each frame gets: :mod:`covo_gtsam.steps`.
+Per frame: colour + depth -> ORB features and 3D points with covariances (:mod:`covo_gtsam.frontend`)
+-> point pairs with the reference frame -> ``T_ref,cur`` and its covariance (:mod:`covo_gtsam.estimator`
+and the sensor terms) -> ``T_world,cur`` (world = the first posed camera frame), composed to first
+order. Settings: :mod:`covo_gtsam.config`; what each frame gets: :mod:`covo_gtsam.steps`.
 """
 
 from __future__ import annotations
 
 import threading
-import warnings
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -20,7 +17,7 @@ import numpy as np
 from .calibration import timing_covariance
 from .camera import Camera
 from .choices import MotionModel
-from .clock import FrameClock, restamp
+from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
 from .config import MAX_GAP_S, OdometryConfig
 from .covariance import compose_covariance
 from .errors import ConfigError, CovoError, EstimationError, InputError
@@ -30,28 +27,10 @@ from .frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift
 from .frontend import FrameData, associate_frames, make_orb, prepare_frame, to_grey
 from .integrity import IntegrityScale, depth_free_check
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
-from .steps import POSED_STATUSES, OdometryStep, StepHistory, StepStatus
+from .steps import POSED_STATUSES, DeprecatedStepAccess, OdometryStep, StepHistory, StepStatus
 
 __all__ = ["VisualOdometry", "OdometryConfig", "OdometryStep", "StepStatus", "POSED_STATUSES", "MAX_GAP_S",
            "check_depth_offset"]
-
-
-def _seconds(value, what: str = "timestamp") -> float:
-    """``value`` as float seconds; InputError naming ``what`` for anything but a real number."""
-    if isinstance(value, (str, bytes, bool, np.bool_)):
-        raise InputError(f"{what} must be a number (seconds), got {value!r}")
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be a number (seconds), got {value!r}") from None
-
-
-def check_depth_offset(offset) -> float:
-    """``offset`` (depth minus colour time, s) as float; InputError unless finite and at most 1 s."""
-    d = _seconds(offset, "depth time offset")
-    if not (np.isfinite(d) and abs(d) <= 1.0):
-        raise InputError(f"the depth image is {d!r} s from its colour image; at most 1 s is usable")
-    return d
 
 
 @dataclass(frozen=True)
@@ -60,12 +39,10 @@ class _PosedFrame:
 
     frame: FrameData
     step: OdometryStep
-    #: keyframe: fewest point pairs a frame matched to it may have before the last posed frame
-    #: replaces it; set by the first frame matched to it (0: not yet)
-    min_pairs: int = 0
+    min_pairs: int = 0  # keyframe: fewest pairs before the last posed frame replaces it (0: not set yet)
 
 
-class VisualOdometry:
+class VisualOdometry(DeprecatedStepAccess):
     """Keyframe-based (or frame-to-frame) RGB-D odometry with per-step covariance.
 
     >>> vo = VisualOdometry(Camera.preset("fr1"))
@@ -127,24 +104,20 @@ class VisualOdometry:
     # -- the entry point ---------------------------------------------------------------------
     def register_frame(self, image: np.ndarray | FrameData, depth: np.ndarray | None = None, timestamp: float = 0.0,
                        depth_timestamp: float | None = None) -> OdometryStep:
-        """Add a frame; return its step: the relative pose to the reference frame, or why it has none.
+        """Add a frame; return its step (:class:`~covo_gtsam.steps.OdometryStep`): the relative pose to
+        the reference frame (the keyframe with ``tracking.keyframes``, else the previous posed frame;
+        ``step.ref_timestamp``), or why it has none. After a lost frame the next is matched to the
+        last posed frame; after ``tracking.restart_after`` lost frames in a row an unmatched frame
+        starts a new segment.
 
-        The reference is the current keyframe (``tracking.keyframes``) or the previous frame with
-        a pose; ``step.ref_timestamp`` names it. ``image`` may also be a :class:`FrameData` from
-        :meth:`prepare` (``depth`` is then ignored), which lets a caller compute features on
-        another thread. A frame that cannot be matched is lost and the next one is matched to the
-        last posed frame; after ``tracking.restart_after`` lost frames in a row, a frame that
-        still cannot be matched starts a new segment (:class:`StepStatus`).
-
-        ``timestamp`` (seconds) must be finite and not earlier than that of the previous frame
-        (registered or marked lost); an equal one is accepted (some datasets repeat stamps): such
-        a pair has no velocity, so no motion prediction or rolling-shutter compensation.
-        ``depth_timestamp`` (seconds, optional) is the depth image's stamp when the camera does
-        not synchronise its streams; a :class:`FrameData` carries its own ``depth_offset``.
+        ``image``: as in :meth:`prepare`, or its :class:`FrameData` (e.g. made on another thread;
+        ``depth`` is then ignored). ``timestamp`` (s): finite and not earlier than the previous
+        frame's (an equal one is accepted; such a pair has no velocity, so no motion prediction or
+        rolling-shutter compensation). ``depth_timestamp`` (s, optional): the depth image's stamp
+        when the camera does not synchronise its streams.
 
         Raises:
-            InputError: the timestamp is not a finite number or goes back in time (the frame is
-                not recorded).
+            InputError: the timestamp is not a finite number or goes back in time (not recorded).
         """
         t = self._place_stamp(timestamp)  # checked, and placed on the frame clock
         frame, step = self._frame_data(image, depth, t, depth_timestamp)  # step: lost if unusable
@@ -165,15 +138,10 @@ class VisualOdometry:
         self._advance(None, step, self._keyframe)
         return step
 
-    @property
-    def reference_step(self) -> OdometryStep | None:
-        """The step of the frame the next one is matched to first (None before the first pose)."""
-        return None if self._keyframe is None else self._keyframe.step
-
     # -- the stages of register_frame, in order ---------------------------------------------------
     def _place_stamp(self, timestamp) -> float:
-        """A frame's checked stamp (:meth:`_check_timestamp`), with the frame clock advanced to it."""
-        t = self._check_timestamp(timestamp)
+        """A frame's checked stamp (:func:`~covo_gtsam.clock.check_stamp`), with the frame clock advanced to it."""
+        t = check_stamp(timestamp, self._last_stamp)
         self._clock_offset = self._clock.offset(t) if self.config.sensor.frame_clock else None
         return t
 
@@ -183,7 +151,7 @@ class VisualOdometry:
         if isinstance(image, FrameData):
             return image, None
         try:
-            offset = 0.0 if depth_timestamp is None else _seconds(depth_timestamp, "depth timestamp") - t
+            offset = 0.0 if depth_timestamp is None else seconds(depth_timestamp, "depth timestamp") - t
             return self.prepare(image, depth, offset), None
         except CovoError as exc:
             return None, OdometryStep(t, StepStatus.LOST, reason=str(exc))
@@ -331,8 +299,7 @@ class VisualOdometry:
                     f"{limits.max_rotation_deg:g} deg, {limits.max_translation_m:g} m)")
         return ""
 
-    def _integrity_check(self, step: OdometryStep, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray,
-                         pairs) -> None:
+    def _integrity_check(self, step: OdometryStep, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs):
         """The pair's integrity statistic (:func:`~covo_gtsam.integrity.depth_free_check`) into
         ``step``: quality, flag, and a flagged pair's covariance inflated."""
         try:
@@ -433,17 +400,6 @@ class VisualOdometry:
             scale=self.config.estimator.scale, robust=self.config.estimator.robust,
             variance_factor=self.config.estimator.variance_factor, initial=initial)
 
-    def _check_timestamp(self, timestamp) -> float:
-        """``timestamp`` as float; InputError unless finite and >= the previous frame's."""
-        t = _seconds(timestamp)
-        if not np.isfinite(t):
-            raise InputError(f"timestamp must be finite, got {t!r}")
-        if self._last_stamp is not None and t < self._last_stamp:
-            raise InputError(
-                f"timestamp {t!r} is earlier than the previous frame's {self._last_stamp!r}; "
-                "frames must be registered in time order")
-        return t
-
     def self_calibration(self) -> dict:
         """What the run learnt about its sensor without ground truth: the frame clock's period (s),
         the scatter of the stamps around it (s.d. of the clock offsets, s) and the integrity
@@ -452,33 +408,3 @@ class VisualOdometry:
         return {"frame_period_s": self._clock.period_s,
                 "stamp_jitter_s": float(np.std(offsets)) if len(offsets) > 2 else None,
                 "integrity_scale": self._integrity.scale}
-
-    # -- deprecated: a run's steps belong to the caller (a StepHistory; run_sequence keeps one) --------
-    def _deprecated(self, name: str) -> StepHistory:
-        warnings.warn(f"VisualOdometry.{name} is deprecated and will be removed in the next release; keep the "
-                      "steps register_frame returns (covo_gtsam.steps.StepHistory)", DeprecationWarning, stacklevel=3)
-        return self._history
-
-    @property
-    def steps(self) -> list[OdometryStep]:
-        return self._deprecated("steps").steps
-
-    @property
-    def tracked_steps(self) -> list[OdometryStep]:
-        return self._deprecated("tracked_steps").posed_steps
-
-    @property
-    def lost_steps(self) -> list[OdometryStep]:
-        return self._deprecated("lost_steps").lost_steps
-
-    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """Timestamps (K,) and poses T_world,cur (K, 4, 4) of the posed frames."""
-        return self._deprecated("trajectory()").trajectory()
-
-    @property
-    def keep_error_bases(self) -> bool:
-        return self._deprecated("keep_error_bases").keep_error_bases
-
-    @keep_error_bases.setter
-    def keep_error_bases(self, keep: bool) -> None:
-        self._deprecated("keep_error_bases").keep_error_bases = keep

@@ -5,6 +5,7 @@ that a caller keeps (:class:`StepHistory`)."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 
 import gtsam
@@ -136,3 +137,41 @@ class StepHistory:
         stamps = np.array([s.timestamp for s in posed])
         poses = np.array([s.pose.matrix() for s in posed]).reshape(-1, 4, 4)
         return stamps, poses
+
+
+class DeprecatedStepAccess:
+    """The history :class:`~covo_gtsam.odometry.VisualOdometry` kept of its steps until this release
+    (``steps``, ``tracked_steps``, ``lost_steps``, ``trajectory()``, ``keep_error_bases``): still
+    there, from the :class:`StepHistory` ``_history`` it fills, with a :class:`DeprecationWarning`;
+    removed in the next release. A caller keeps the steps ``register_frame`` returns instead."""
+
+    _history: StepHistory
+
+    def _deprecated(self, name: str) -> StepHistory:
+        warnings.warn(f"VisualOdometry.{name} is deprecated and will be removed in the next release; keep the "
+                      "steps register_frame returns (covo_gtsam.steps.StepHistory)", DeprecationWarning, stacklevel=3)
+        return self._history
+
+    @property
+    def steps(self) -> list[OdometryStep]:
+        return self._deprecated("steps").steps
+
+    @property
+    def tracked_steps(self) -> list[OdometryStep]:
+        return self._deprecated("tracked_steps").posed_steps
+
+    @property
+    def lost_steps(self) -> list[OdometryStep]:
+        return self._deprecated("lost_steps").lost_steps
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Timestamps (K,) and poses T_world,cur (K, 4, 4) of the posed frames."""
+        return self._deprecated("trajectory()").trajectory()
+
+    @property
+    def keep_error_bases(self) -> bool:
+        return self._deprecated("keep_error_bases").keep_error_bases
+
+    @keep_error_bases.setter
+    def keep_error_bases(self, keep: bool) -> None:
+        self._deprecated("keep_error_bases").keep_error_bases = keep

@@ -112,7 +112,7 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
     vo = VisualOdometry(seq.camera, OdometryConfig().replace(tracking={"keyframes": keyframes}))
     err_guess, err_still, steps = [], [], []
     for i in range(16):
-        ref_step = vo.reference_step
+        ref_step = None if vo._keyframe is None else vo._keyframe.step
         guess = None if ref_step is None else vo.predict(ref_step, seq.timestamps[i])
         if i >= 2:  # two tracked frames give a velocity
             s_prev, s_last = steps[-2], steps[-1]
@@ -131,7 +131,7 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
         # the camera turns smoothly: predicted rotations are closer to the estimates than "no motion"
         assert len(err_guess) == 14 and np.median(err_guess) < 0.5 * np.median(err_still)
     still = OdometryConfig().replace(tracking={"motion_model": "none"})
-    assert VisualOdometry(seq.camera, still).predict(vo.reference_step, 0.0) is None
+    assert VisualOdometry(seq.camera, still).predict(vo._keyframe.step, 0.0) is None
     with pytest.raises(ConfigError):
         VisualOdometry(seq.camera, OdometryConfig().replace(tracking={"motion_model": "fast"}))
 
