@@ -37,11 +37,11 @@ import cv2
 import numpy as np
 
 from .camera import Camera
+from .choices import OutlierRejection
 from .errors import ConfigError, InputError
 from .factors import SYM6, sym3_mahalanobis, transfer_mahalanobis, weighted_rigid_fit
 from .geometry import make_pose, rigid_fit
 from .noise import PointNoiseModel, surface_angles
-from .choices import OutlierRejection
 from .validation import check_settings, choice, integer, number
 
 OUTLIER_REJECTIONS = ("rigid3d", "homography", "none")
@@ -83,6 +83,7 @@ class FrontendConfig:
     section: ClassVar[str] = "frontend"
 
     n_features: int = integer(1000, "ORB keypoints per image at most", 1, MAX_FEATURES, "keypoints")
+    # OpenCV's ORB: scaleFactor < 1 fails, 1 finds nothing; above 2 levels skip pixels (aliasing).
     scale_factor: float = number(1.2, "ORB pyramid scale between levels", "ratio", above=1.0, maximum=2.0)
     n_levels: int = integer(8, "ORB pyramid levels", 1, MAX_LEVELS, "levels")
     fast_threshold: int = integer(20, "FAST corner threshold of ORB", 0, 255, "grey levels")
@@ -101,8 +102,8 @@ class FrontendConfig:
     seed: int = integer(0, "seed of the rigid3d RANSAC (a fresh np.random.default_rng(seed) per pair)", 0)
     min_depth: float = number(0.5, "nearest valid depth", "m", "non-negative")
     max_depth: float = number(5.0, "farthest valid depth", "m", finite=False)
-    min_pairs: int = integer(30, "fewest point pairs a frame pair needs (fewer: the frame is lost)", 3,
-                             unit="pairs")
+    min_pairs: int = integer(30, "fewest point pairs a frame pair needs (checked by the caller: the odometry "
+                             "loses the frame)", 3, unit="pairs")
     max_hamming: int | None = integer(None, "absolute cut on the Hamming distance, after keep_ratio (unset: none)",
                                       0, unit="bits", optional=True)
 

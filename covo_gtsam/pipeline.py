@@ -44,12 +44,12 @@ import numpy as np
 
 from . import __version__
 from .camera import Camera
+from .config import OdometryConfig, save_config
 from .datasets.tum import TumSequence
 from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData, load_depth, load_grey
 from .g2o import G2oWriter
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
-from .config import OdometryConfig, save_config
 from .odometry import OdometryStep, VisualOdometry
 from .steps import StepHistory
 from .validation import check_int
