@@ -115,10 +115,10 @@ def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
             pairs = associate_frames(prev, frame, fe)
             res = clock("solve + marginals", estimate_relative_pose, pairs.X_ref, pairs.X_cur, pairs.Q_ref,
                         pairs.Q_cur, initial=None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
-            if cfg.rolling_shutter_s > 0:
+            if cfg.sensor.rolling_shutter_s > 0:
                 dt = seq.timestamps[i] - seq.timestamps[i - 1]
                 res = clock("rolling shutter: compensate + solve again", compensated_solve, pairs, res, dt,
-                            seq.camera.height, cfg.rolling_shutter_s)
+                            seq.camera.height, cfg.sensor.rolling_shutter_s)
             clock("output lines", lambda res=res: (format_tum_line(0.0, res.matrix),
                                                     format_relative_line(0.0, 0.0, res.matrix, res.covariance)))
         prev = frame

@@ -46,7 +46,7 @@ def run_covo(seq, frames):
         t = time.perf_counter()
         step = vo.register_frame(grey, depth, seq.timestamps[k])
         times.append(time.perf_counter() - t)
-        if k and step.tracked:
+        if k and step.has_pose:
             last = step.pose.matrix()
         if k:
             poses.append(last)

@@ -18,12 +18,16 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree wi
 #: public name -> module that holds it
 _PUBLIC = {
     "Camera": "camera",
-    "OdometryConfig": "odometry",
-    "OdometryStep": "odometry",
+    "OdometryConfig": "config",
+    "OdometryStep": "steps",
+    "StepStatus": "steps",
+    "StepHistory": "steps",
     "VisualOdometry": "odometry",
     "FrontendConfig": "frontend",
     "estimate_relative_pose": "estimator",
     "RelativePoseResult": "estimator",
+    "load_config": "config",
+    "save_config": "config",
     "TumSequence": "datasets.tum",
     "run_sequence": "pipeline",
     "RunResult": "pipeline",

@@ -139,6 +139,8 @@ class RunEvaluation:
     #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
     self_calibration: dict | None = None
+    #: the covo-gtsam version that made the run, set by the pipeline
+    version: str | None = None
     #: translational (m) and rotational (rad) RPE of each frame pair, per interval in frames
     rpe_errors: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
     #: position error (m) of each aligned frame, segments pooled
@@ -164,7 +166,7 @@ class RunEvaluation:
     def to_dict(self) -> dict:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then with ground truth
         ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate`` and the :data:`CONSISTENCY_KEYS`,
-        then ``self_calibration`` when it is set."""
+        then ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
             "sequence": self.sequence,
             "frames": self.frames,
@@ -187,6 +189,8 @@ class RunEvaluation:
             out.update(self.consistency or dict.fromkeys(CONSISTENCY_KEYS))
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
+        if self.version is not None:
+            out["version"] = self.version
         return copy.deepcopy(out)
 
 

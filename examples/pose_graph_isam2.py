@@ -10,7 +10,7 @@ What it does:
 
 1. Runs :class:`covo_gtsam.odometry.VisualOdometry` over the TUM sequence (through
    :func:`covo_gtsam.pipeline.run_sequence`, which also writes ``OUT/vo/``) with the default
-   :class:`~covo_gtsam.odometry.OdometryConfig` or the settings of ``--config``.
+   :class:`~covo_gtsam.config.OdometryConfig` or the settings of ``--config``.
 2. Builds the same pose graph several times, incrementally with ``gtsam.ISAM2`` (one update per
    frame, new poses initialised from the current estimate of their reference frame composed with
    the odometry):
@@ -66,13 +66,12 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from covo_gtsam.cli import load_config_file
+from covo_gtsam.config import OdometryConfig, load_config
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.errors import CovoError
 from covo_gtsam.geometry import invert_pose
 from covo_gtsam.graph import between_factors, step_keys, unit_between_factors
 from covo_gtsam.metrics import ate
-from covo_gtsam.odometry import OdometryConfig
 from covo_gtsam.pipeline import run_sequence
 from covo_gtsam.plots import ellipse_xy, plane_axes, save_figure
 
@@ -236,7 +235,7 @@ def run(args: argparse.Namespace) -> dict:
     if seq.groundtruth is None:
         raise CovoError(f"{args.seq}: the sequence has no ground truth (groundtruth.txt); fixes need it")
     out = Path(args.out)
-    config = load_config_file(args.config) if args.config else OdometryConfig()
+    config = load_config(args.config) if args.config else OdometryConfig()
     res = run_sequence(seq, out / "vo", config=config, max_frames=args.max_frames, plots=False, progress=False)
     steps = res.steps
     n = len(steps)
@@ -253,7 +252,7 @@ def run(args: argparse.Namespace) -> dict:
     indices = sorted(gt_rel)  # tracked frames with ground truth: the frames evaluated
 
     covo_factors, _ = between_factors(steps)
-    tracked_covs = np.array([s.covariance for s in steps if s.status == "tracked"])
+    tracked_covs = np.array([s.covariance for s in steps if s.has_relative_pose])
     median_cov = median_block_covariance(tracked_covs)
     unit_factors, _ = unit_between_factors(steps, sigma=UNIT_SIGMA)
     median_factors, _ = unit_between_factors(steps, covariance=median_cov)

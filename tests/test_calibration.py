@@ -33,12 +33,13 @@ def test_sensor_covariance_scales_points_and_adds_frame_term():
 
 def test_config_sensor_covariance_uses_the_interval_count():
     cfg = OdometryConfig()
+    sensor = cfg.sensor
     P = np.diag([1e-6] * 3 + [1e-6] * 3)
-    dt = 2 * cfg.frame_interval_s
-    expected = sensor_covariance(P, cfg.correlation_factor, np.deg2rad(cfg.frame_sigma_rot_deg),
-                                 cfg.frame_sigma_trans_m, 2)
+    dt = 2 * sensor.frame_interval_s
+    expected = sensor_covariance(P, sensor.correlation_factor, np.deg2rad(sensor.frame_sigma_rot_deg),
+                                 sensor.frame_sigma_trans_m, 2)
     np.testing.assert_allclose(cfg.sensor_covariance(P, dt), expected)
-    np.testing.assert_allclose(cfg.sensor_covariance(P, dt) - cfg.correlation_factor * P, cfg.frame_noise(dt))
+    np.testing.assert_allclose(cfg.sensor_covariance(P, dt) - sensor.correlation_factor * P, cfg.frame_noise(dt))
 
 
 def test_log_likelihood_matches_gaussian_density():

@@ -80,11 +80,11 @@ def test_estimate_accepts_a_4x4_initial_pose():
 
 
 def test_string_scale_is_a_clear_error():
+    from covo_gtsam.config import EstimatorConfig
     from covo_gtsam.errors import ConfigError
-    from covo_gtsam.odometry import OdometryConfig
     from covo_gtsam.simulation import SimulationConfig
 
-    for cls in (OdometryConfig, SimulationConfig):
+    for cls in (EstimatorConfig, SimulationConfig):
         with pytest.raises(ConfigError, match="scale must be a positive number.*, got '2'"):
             cls(scale="2")
         with pytest.raises(ConfigError, match="scale"):

@@ -101,14 +101,14 @@ def test_register_frame_after_a_huge_gap_is_lost(sample_dir):
     assert step.status == "lost" and step.covariance is None and "reference frame" in step.reason
     # the frames that follow at the new time are not matched across the gap either; after
     # restart_after of them a new segment starts, with a finite pose covariance
-    steps = [vo.register_frame(*images[k % 2], 1e300) for k in range(vo.config.restart_after)]
+    steps = [vo.register_frame(*images[k % 2], 1e300) for k in range(vo.config.tracking.restart_after)]
     assert steps[-1].status == "restart" and np.all(np.isfinite(steps[-1].pose_covariance))
 
 
 def test_frame_intervals_refuses_a_gap_no_recording_has():
     MAX_GAP_S = odometry.MAX_GAP_S
     cfg = OdometryConfig()
-    assert cfg.frame_intervals(MAX_GAP_S) == round(MAX_GAP_S / cfg.frame_interval_s)
+    assert cfg.frame_intervals(MAX_GAP_S) == round(MAX_GAP_S / cfg.sensor.frame_interval_s)
     assert np.all(np.isfinite(cfg.frame_noise(MAX_GAP_S)))
     for dt in (1e300, 1e308, math.inf):
         with pytest.raises(InputError, match="not one recording"):

@@ -180,17 +180,19 @@ def test_between_factors_from_real_odometry():
     if not seq_dir.is_dir():
         pytest.skip("sample sequence missing")
     from covo_gtsam.odometry import VisualOdometry
+    from covo_gtsam.steps import StepHistory
 
     seq = tum.TumSequence(seq_dir)
     vo = VisualOdometry(seq.camera)
+    history = StepHistory()
     for i in range(4):
-        vo.register_frame(*seq.load(i), seq.timestamps[i])
-    factors, initial = between_factors(vo.steps)
-    tracked = [s for s in vo.steps if s.status == "tracked"]
+        history.add(vo.register_frame(*seq.load(i), seq.timestamps[i]))
+    factors, initial = between_factors(history.steps)
+    tracked = [s for s in history if s.has_relative_pose]
     assert len(factors) == len(tracked) >= 1
     for f, s in zip(factors, tracked):
         np.testing.assert_allclose(f.noiseModel().covariance(), s.covariance, rtol=1e-8, atol=1e-20)
-    assert initial.size() == len(vo.tracked_steps)
+    assert initial.size() == len(history.posed_steps)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ from covo_gtsam.odometry import OdometryConfig
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements
 
 FX, FY = 517.3, 516.5
-THRESHOLD = OdometryConfig().integrity_threshold
+THRESHOLD = OdometryConfig().sensor.integrity_threshold
 
 
 #: A frame-rate motion (2 cm, 1.5 deg), as between consecutive frames of a hand-held camera.

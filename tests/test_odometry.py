@@ -21,25 +21,26 @@ def test_run_restarts_after_a_run_of_lost_frames(sample_dir):
     from covo_gtsam.odometry import OdometryConfig
 
     seq = TumSequence(sample_dir)
-    cfg = OdometryConfig(restart_after=3)
+    cfg = OdometryConfig().replace(tracking={"restart_after": 3})
     vo = VisualOdometry(seq.camera, cfg)
-    statuses = []
+    steps = []
     for i in range(10):
         img = cv2.imread(seq.rgb_paths[i])
         if i in (3, 4):
             img = np.full_like(img, 128)
         elif i >= 5:
             img = np.ascontiguousarray(np.roll(img[::-1, ::-1], 200, axis=1))
-        statuses.append(vo.register_frame(img, load_depth(seq.depth_paths[i]), seq.timestamps[i]).status)
+        steps.append(vo.register_frame(img, load_depth(seq.depth_paths[i]), seq.timestamps[i]))
+    statuses = [s.status for s in steps]
     # 3, 4 blank and 5 (flipped) lost; 6 cannot be matched to frame 2 either and restarts
     assert statuses == ["first", "tracked", "tracked", "lost", "lost", "lost", "restart",
                         "tracked", "tracked", "tracked"], statuses
-    last, restart = vo.steps[2], vo.steps[6]
+    last, restart = steps[2], steps[6]
     assert restart.relative is None and "3 lost frames" in restart.reason
     assert np.allclose(restart.pose.matrix(), last.pose.matrix())
     assert np.allclose(restart.pose_covariance, last.pose_covariance + cfg.gap_noise())
-    assert vo.steps[7].ref_timestamp == pytest.approx(restart.timestamp)
-    factors, initial = between_factors(vo.steps)
+    assert steps[7].ref_timestamp == pytest.approx(restart.timestamp)
+    factors, initial = between_factors(steps)
     assert len(factors) == 2 + 3 and initial.size() == 7  # no factor across the gap
 
 
@@ -70,7 +71,7 @@ def test_register_frame_rejects_bad_timestamps(sample_dir):
             vo.register_frame(frame, timestamp=bad)
     with pytest.raises(InputError, match="earlier"):
         vo.mark_lost(9.0, "unreadable")
-    assert len(vo.steps) == 1  # rejected frames are not recorded
+    assert vo._last_stamp == 10.0  # rejected frames are not recorded
     # a repeated stamp is accepted (no velocity over a zero interval)
     step = vo.register_frame(frame, timestamp=10.0)
     assert step.tracked and step.velocity is None and np.all(np.isfinite(step.covariance))
@@ -109,29 +110,25 @@ def _bad_values(default) -> list:
 def _config_cases():
     import dataclasses
 
-    from covo_gtsam.frontend import FrontendConfig
-    from covo_gtsam.odometry import OdometryConfig
+    from covo_gtsam.config import GROUPS
 
-    for cls, prefix in ((OdometryConfig, ""), (FrontendConfig, "frontend.")):
+    for group, cls in GROUPS.items():
         for f in dataclasses.fields(cls):
-            if f.name == "frontend":
-                continue
             default = getattr(cls(), f.name)
             for bad in _bad_values(default):
                 if f.name == "robust" and bad is None:
                     continue  # None is a valid kernel choice
-                yield pytest.param(prefix, f.name, bad, id=f"{prefix}{f.name}={bad!r}")
+                yield pytest.param(group, f.name, bad, id=f"{group}.{f.name}={bad!r}")
 
 
-@pytest.mark.parametrize("prefix,name,bad", list(_config_cases()))
-def test_every_config_field_rejects_wrong_types(prefix, name, bad):
+@pytest.mark.parametrize("group,name,bad", list(_config_cases()))
+def test_every_config_field_rejects_wrong_types(group, name, bad):
     from covo_gtsam.errors import ConfigError
     from covo_gtsam.odometry import OdometryConfig
 
-    data = {"frontend": {name: bad}} if prefix else {name: bad}
     with pytest.raises(ConfigError) as info:
-        OdometryConfig.from_dict(data)
-    assert name in str(info.value)
+        OdometryConfig.from_dict({group: {name: bad}})
+    assert f"{group}.{name}" in str(info.value)
 
 
 def test_config_accepts_its_own_dict_and_numpy_scalars():
@@ -140,7 +137,8 @@ def test_config_accepts_its_own_dict_and_numpy_scalars():
     cfg = OdometryConfig()
     assert OdometryConfig.from_dict(cfg.to_dict()) == cfg
     assert OdometryConfig.from_dict({"frontend": None}) == cfg
-    OdometryConfig.from_dict({"pixel_sigma": np.float32(1.5), "restart_after": np.int64(3), "keyframes": np.bool_(True),
+    OdometryConfig.from_dict({"noise": {"pixel_sigma": np.float32(1.5)},
+                              "tracking": {"restart_after": np.int64(3), "keyframes": np.bool_(True)},
                               "frontend": {"n_features": np.int32(500), "scale_factor": 2}})
 
 
@@ -168,15 +166,15 @@ def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
 
     seq = TumSequence(sample_dir)
     # the frame term alone: no frame-level terms, no restamping by the frame clock
-    cfg = OdometryConfig(frame_clock=False, **{name: 0.0 for name in ERROR_TERMS.values()})
+    cfg = OdometryConfig().replace(sensor={"frame_clock": False, **{name: 0.0 for name in ERROR_TERMS.values()}})
     vo = VisualOdometry(seq.camera, cfg)
     steps = [vo.register_frame(*seq.load(i), seq.timestamps[i]) for i in (0, 1, 3)]
     assert [s.status for s in steps] == ["first", "tracked", "tracked"]
     for step, k in ((steps[1], 1), (steps[2], 2)):
         assert cfg.frame_intervals(step.timestamp - step.ref_timestamp) == k
-        r2, t2 = np.deg2rad(cfg.frame_sigma_rot_deg) ** 2, cfg.frame_sigma_trans_m**2
+        r2, t2 = np.deg2rad(cfg.sensor.frame_sigma_rot_deg) ** 2, cfg.sensor.frame_sigma_trans_m**2
         frame = np.diag([r2 * k] * 3 + [t2 * k * k] * 3)
         np.testing.assert_allclose(cfg.frame_noise(step.timestamp - step.ref_timestamp), frame, rtol=1e-12)
-        np.testing.assert_allclose(step.covariance, cfg.correlation_factor * step.result.covariance + frame,
+        np.testing.assert_allclose(step.covariance, cfg.sensor.correlation_factor * step.result.covariance + frame,
                                    rtol=1e-12)
     assert cfg.frame_intervals(0.0) == 1 and cfg.frame_intervals(0.040) == 1 and cfg.frame_intervals(0.1) == 3

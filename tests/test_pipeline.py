@@ -118,29 +118,31 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
     from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
     seq = TumSequence(sample_dir)
-    vo = VisualOdometry(seq.camera, OdometryConfig(keyframes=keyframes))
-    err_guess, err_still = [], []
+    vo = VisualOdometry(seq.camera, OdometryConfig().replace(tracking={"keyframes": keyframes}))
+    err_guess, err_still, steps = [], [], []
     for i in range(16):
-        ref_step = vo._ref_step
+        ref_step = None if vo._keyframe is None else vo._keyframe.step
         guess = None if ref_step is None else vo.predict(ref_step, seq.timestamps[i])
         if i >= 2:  # two tracked frames give a velocity
-            s_prev, s_last = vo.steps[-2], vo.steps[-1]
+            s_prev, s_last = steps[-2], steps[-1]
             scale = (seq.timestamps[i] - s_last.timestamp) / (s_last.timestamp - s_prev.timestamp)
             ahead = gtsam.Pose3.Expmap(scale * gtsam.Pose3.Logmap(s_prev.pose.between(s_last.pose)))
             expected = ref_step.pose.between(s_last.pose).compose(ahead)
             np.testing.assert_allclose(guess.matrix(), expected.matrix(), atol=1e-12)
         step = vo.register_frame(*seq.load(i), seq.timestamps[i])
+        steps.append(step)
         assert step.tracked
         if guess is not None and step.ref_timestamp == ref_step.timestamp:
-            still = ref_step.pose.between(vo.steps[-2].pose)
+            still = ref_step.pose.between(steps[-2].pose)
             err_guess.append(np.linalg.norm(gtsam.Rot3.Logmap(guess.rotation().between(step.relative.rotation()))))
             err_still.append(np.linalg.norm(gtsam.Rot3.Logmap(still.rotation().between(step.relative.rotation()))))
     if not keyframes:
         # the camera turns smoothly: predicted rotations are closer to the estimates than "no motion"
         assert len(err_guess) == 14 and np.median(err_guess) < 0.5 * np.median(err_still)
-    assert VisualOdometry(seq.camera, OdometryConfig(motion_model="none")).predict(vo._ref_step, 0.0) is None
+    still = OdometryConfig().replace(tracking={"motion_model": "none"})
+    assert VisualOdometry(seq.camera, still).predict(vo._keyframe.step, 0.0) is None
     with pytest.raises(ConfigError):
-        VisualOdometry(seq.camera, OdometryConfig(motion_model="fast"))
+        VisualOdometry(seq.camera, OdometryConfig().replace(tracking={"motion_model": "fast"}))
 
 
 @pytest.mark.realdata
@@ -163,7 +165,7 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
     fit, first_half = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False)
     assert 95 <= fit.pairs <= 100  # 119 pairs, less those of the first 20 frames (no clock yet) and flagged ones
     for name, value in fit.config_values().items():
-        assert getattr(default, name) == pytest.approx(value, rel=0.03), name
+        assert getattr(default.sensor, name) == pytest.approx(value, rel=0.03), name
     _, whole = calibrate_sequence(seq, tmp_path / "all", progress=False)
     lookup = ground_truth_lookup(seq)
     index = {t: i for i, t in enumerate(seq.timestamps)}
@@ -197,10 +199,11 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     # the per-point model alone is too confident on real data (ANEES well above 3); the fit inflates it
     assert min(s["per_point_model_anees"]) > 6 and s["correlation_factor"] > 1
     assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 < s["frame_sigma_trans_m"] < 0.01
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.split(" = ")[0].isidentifier()]
-    assert len(lines) == 5  # kappa, the two frame sigmas and the default frame-level terms
-    cfg = OdometryConfig.from_dict({k: float(v) for k, v in (ln.split(" = ") for ln in lines)})
-    assert cfg.correlation_factor == pytest.approx(s["correlation_factor"], rel=1e-2)
+    printed = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in printed if ln.split(" = ")[0].isidentifier()]
+    assert len(lines) == 5 and "[sensor]" in printed  # kappa, the two frame sigmas and the default frame-level terms
+    cfg = OdometryConfig.from_dict({"sensor": {k: float(v) for k, v in (ln.split(" = ") for ln in lines)}})
+    assert cfg.sensor.correlation_factor == pytest.approx(s["correlation_factor"], rel=1e-2)
     assert (out / "per_point_run" / "relative.txt").is_file()
 
 
@@ -221,8 +224,6 @@ def test_default_depth_sigma_scale_minimises_rpe1_on_the_first_half_of_fr1_rpy(f
     """depth_sigma_scale is the value with the smallest translational RPE over 1 frame on frames
     0-119 of the shared fr1_rpy frames; the published model (1) and the neighbours of the default
     on the study's grid do worse there."""
-    import dataclasses
-
     from covo_gtsam.odometry import OdometryConfig
     from covo_gtsam.pipeline import run_sequence
 
@@ -230,12 +231,12 @@ def test_default_depth_sigma_scale_minimises_rpe1_on_the_first_half_of_fr1_rpy(f
     default = OdometryConfig()
 
     def rpe1(scale):
-        cfg = dataclasses.replace(default, depth_sigma_scale=scale)
+        cfg = default.replace(noise={"depth_sigma_scale": scale})
         m = run_sequence(seq, tmp_path / str(scale), config=cfg, max_frames=120, plots=False, progress=False).metrics
         return m["rpe_1"]["trans_rmse"]
 
-    best = rpe1(default.depth_sigma_scale)
-    for scale in (1.0, default.depth_sigma_scale - 1.0, default.depth_sigma_scale + 1.0):
+    best = rpe1(default.noise.depth_sigma_scale)
+    for scale in (1.0, default.noise.depth_sigma_scale - 1.0, default.noise.depth_sigma_scale + 1.0):
         assert best < rpe1(scale)
 
 
