@@ -107,13 +107,16 @@ class PointNoiseModel:
     lateral: KinectLateralNoise | None = None
 
     def uvz_covariances(
-        self, z: np.ndarray, theta: np.ndarray | float = 0.0, pixel_scale: np.ndarray | float = 1.0
+        self, z: np.ndarray, theta: np.ndarray | float = 0.0, pixel_scale: np.ndarray | float = 1.0,
+        lookup_variance: np.ndarray | float = 0.0,
     ) -> np.ndarray:
         """Diagonal ``Q_uvz`` (N, 3, 3) of (4.10): pixel variances (px^2) and depth variance (m^2).
 
         ``pixel_scale`` multiplies the pixel standard deviations per point, e.g. the ORB pyramid
         scale ``scale_factor ** octave`` of each keypoint (a keypoint found on level L is
-        localised to about ``scale_factor ** L`` full-resolution pixels).
+        localised to about ``scale_factor ** L`` full-resolution pixels). ``lookup_variance`` (m^2,
+        per point) is added to the depth variance: the depth the image holds around the keypoint
+        (:func:`depth_lookup_variance`).
         """
         z = np.asarray(z, dtype=float)
         n = z.shape[0]
@@ -127,19 +130,19 @@ class PointNoiseModel:
         Q = np.zeros((n, 3, 3))
         Q[:, 0, 0] = var_u
         Q[:, 1, 1] = var_v
-        Q[:, 2, 2] = self.depth.sigma(z, theta) ** 2
+        Q[:, 2, 2] = self.depth.sigma(z, theta) ** 2 + lookup_variance
         return Q
 
     def point_covariances(
         self, camera: Camera, uv: np.ndarray, z: np.ndarray, theta: np.ndarray | float = 0.0,
-        pixel_scale: np.ndarray | float = 1.0,
+        pixel_scale: np.ndarray | float = 1.0, lookup_variance: np.ndarray | float = 0.0,
     ) -> np.ndarray:
         """Camera-frame covariances ``Q_xyz`` (N, 3, 3) in m^2 of points at undistorted ``uv``, depth ``z``.
 
         ``pixel_scale``: per-point factor on the pixel standard deviations (see :meth:`uvz_covariances`).
         """
         J = camera.backprojection_jacobian(uv, z)
-        return propagate(J, self.uvz_covariances(z, theta, pixel_scale))
+        return propagate(J, self.uvz_covariances(z, theta, pixel_scale, lookup_variance))
 
 
 def propagate(J: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -184,3 +187,43 @@ def surface_angles(
     cosang = np.abs(np.einsum("ij,ij->i", normal, pc)) / np.where(ok, norm, 1.0)
     theta[ok] = np.arccos(np.clip(cosang[ok], 0.0, 1.0))
     return theta
+
+
+def depth_lookup_variance(depth: np.ndarray, uv: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Variance (m^2, N) of the depth read at keypoints ``uv`` (N, 2; pixels of the depth image
+    ``depth``, metres, 0 = none) whose true position is off by independent errors with standard
+    deviations along the directions ``offsets`` (K, 2) or (K, N, 2) pixels, from sigma points:
+    ``sum_k (dZ(+o_k)^2 + dZ(-o_k)^2) / 2``, ``dZ(o)`` the change of the (nearest-pixel) depth
+    from ``uv`` to ``uv + o``.
+
+    With offsets ``sigma e_u`` and ``sigma e_v`` (a keypoint localised to ``sigma`` pixels) it is
+    ``sigma^2 |grad Z|^2`` on a smooth surface and about half the squared jump beside a depth edge,
+    where the lookup can land on either side. A sigma point off the image or without depth is no
+    information: its direction uses the other sign alone, or nothing."""
+    uv = np.asarray(uv, dtype=float)
+    n = uv.shape[0]
+    offsets = np.asarray(offsets, dtype=float)
+    if offsets.ndim == 2:
+        offsets = np.broadcast_to(offsets[:, None, :], (offsets.shape[0], n, 2))
+    out = np.zeros(n)
+    if n == 0 or offsets.shape[0] == 0:
+        return out
+    h, w = depth.shape
+    ui = np.clip(np.floor(uv[:, 0] + 0.5).astype(np.intp), 0, w - 1)
+    vi = np.clip(np.floor(uv[:, 1] + 0.5).astype(np.intp), 0, h - 1)
+    zc = depth[vi, ui].astype(float)
+    for off in offsets:
+        total = np.zeros(n)
+        count = np.zeros(n)
+        for sign in (1.0, -1.0):
+            with np.errstate(invalid="ignore"):
+                u2 = np.floor(uv[:, 0] + sign * off[:, 0] + 0.5)
+                v2 = np.floor(uv[:, 1] + sign * off[:, 1] + 0.5)
+                on = np.isfinite(u2) & np.isfinite(v2) & (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
+            z2 = depth[np.where(on, v2, 0).astype(np.intp), np.where(on, u2, 0).astype(np.intp)].astype(float)
+            with np.errstate(invalid="ignore"):
+                ok = on & np.isfinite(z2) & (z2 > 0)
+            total += np.where(ok, (z2 - zc) ** 2, 0.0)
+            count += ok
+        out += np.where(count > 0, total / np.maximum(count, 1), 0.0)
+    return out

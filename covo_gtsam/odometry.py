@@ -25,8 +25,9 @@ from .estimator import ROBUST_KERNELS, RelativePoseResult, estimate_relative_pos
 from .factors import WEIGHTINGS
 from .clock import FrameClock, restamp
 from .integrity import IntegrityScale, depth_free_check
-from .frontend import FrameData, FrontendConfig, associate_frames, make_orb, prepare_frame, to_grey
-from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
+from .frontend import FrameData, FrontendConfig, PointPairs, associate_frames, make_orb, prepare_frame, to_grey
+from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel, depth_lookup_variance
+from .geometry import image_velocities
 from .frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, rolling_shutter_basis,
                            transfer_gains)
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
@@ -63,6 +64,7 @@ _REAL_LIMITS = {
     "stamp_jitter_s": ("non-negative", None, 1.0),
     "integrity_threshold": ("positive", None, None),
     "rolling_shutter_s": ("non-negative", None, 1.0),
+    "depth_offset_factor": ("non-negative", None, 100.0),
 }
 
 
@@ -158,6 +160,8 @@ class OdometryConfig:
     clock_window: int = 60
     restart_after: int = 5
     rolling_shutter_s: float = 0.025
+    depth_lookup_noise: bool = True
+    depth_offset_factor: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.frontend, FrontendConfig):
@@ -168,7 +172,7 @@ class OdometryConfig:
         for name, allowed in choices.items():
             check_choice(name, getattr(self, name), allowed)
         for name in ("pixel_sigma_by_level", "use_surface_angle", "keyframes", "variance_factor", "frame_clock",
-                     "depth_time_compensation"):
+                     "depth_time_compensation", "depth_lookup_noise"):
             check_bool(name, getattr(self, name))
         for name, (kind, lo, hi) in _REAL_LIMITS.items():
             check_real(name, getattr(self, name), kind, lo, hi)
@@ -360,6 +364,7 @@ class VisualOdometry:
             to_grey(image), depth, self.camera, orb, self._noise, self.config.frontend,
             use_surface_angle=self.config.use_surface_angle,
             pixel_sigma_by_level=self.config.pixel_sigma_by_level,
+            depth_lookup_noise=self.config.depth_lookup_noise,
         )
         frame.depth_offset = depth_offset
         return frame
@@ -461,6 +466,8 @@ class VisualOdometry:
             res = self._solve(X_ref, X_cur, pairs, None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
             if dt > 0 and (self.config.rolling_shutter_s > 0 or self.config.depth_time_compensation):
                 twist_ref, twist_cur = frame_twists(res.pose, dt, ref_step.velocity)
+                if self.config.depth_offset_factor > 0 and (ref.depth_offset or frame.depth_offset):
+                    pairs = self._with_offset_noise(pairs, ref, frame, twist_ref, twist_cur)
                 X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
                 X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
                 res = self._solve(X_ref, X_cur, pairs, res.pose)
@@ -510,6 +517,26 @@ class VisualOdometry:
         if self._keyframe_min_pairs == 0:
             self._keyframe_min_pairs = max(2 * min_pairs, int(self.config.keyframe_ratio * pairs.num_inliers))
         return step
+
+    def _with_offset_noise(self, pairs: PointPairs, ref: FrameData, frame: FrameData, twist_ref: np.ndarray,
+                           twist_cur: np.ndarray) -> PointPairs:
+        """``pairs`` with each point's covariance grown by the depth its image changes over the
+        frame's colour-depth offset (``depth_offset_factor`` times the stamped one): the depth image
+        saw the scene shifted by the point's image velocity times the offset, so the depth read at
+        the colour keypoint may belong to a neighbouring surface (:func:`~covo_gtsam.noise.depth_lookup_variance`,
+        sigma points at plus and minus that shift; added along the viewing ray)."""
+        Q = []
+        for fd, X, uv, Q_f, twist in ((ref, pairs.X_ref, pairs.uv_ref, pairs.Q_ref, twist_ref),
+                                      (frame, pairs.X_cur, pairs.uv_cur, pairs.Q_cur, twist_cur)):
+            if not fd.depth_offset:
+                Q.append(Q_f)
+                continue
+            shift = image_velocities(X, twist, self.camera.fx, self.camera.fy) * (
+                self.config.depth_offset_factor * fd.depth_offset)
+            ray = X / X[:, 2:3]
+            Q.append(Q_f + depth_lookup_variance(fd.depth, uv, shift[None])[:, None, None]
+                     * ray[:, :, None] * ray[:, None, :])
+        return dataclasses.replace(pairs, Q_ref=Q[0], Q_cur=Q[1])
 
     def _capture_interval(self, ref_step: OdometryStep, timestamp: float) -> tuple[float, float, float]:
         """``(dt, r_ref, r_cur)``: the time between the two frames' captures (s) and the clock offsets
