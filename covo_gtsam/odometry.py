@@ -132,7 +132,7 @@ class OdometryConfig:
 
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     pixel_sigma: float = 2.0
-    depth_sigma_scale: float = 4.5
+    depth_sigma_scale: float = 2.0
     pixel_sigma_by_level: bool = False
     use_surface_angle: bool = True
     weighting: str = "consistent"
@@ -145,9 +145,9 @@ class OdometryConfig:
     variance_factor: bool = False
     max_rotation_deg: float = 30.0
     max_translation_m: float = 0.5
-    correlation_factor: float = 1.33
+    correlation_factor: float = 1.34
     frame_sigma_rot_deg: float = 0.105
-    frame_sigma_trans_m: float = 0.00085
+    frame_sigma_trans_m: float = 0.00105
     frame_interval_s: float = 1.0 / 30.0
     timing_sigma_s: float = 0.00068
     integrity_threshold: float = 50.0
@@ -155,7 +155,7 @@ class OdometryConfig:
     depth_time_compensation: bool = False
     depth_scale_sigma: float = 0.0
     depth_time_factor: float = 0.0
-    rolling_shutter_factor: float = 1.2
+    rolling_shutter_factor: float = 1.3
     stamp_jitter_s: float = 0.002
     clock_window: int = 60
     restart_after: int = 5
