@@ -189,17 +189,24 @@ def surface_angles(
     return theta
 
 
+#: Gauss-Hermite quadrature of a standard normal with 5 nodes: the nonzero nodes and the weight of
+#: each sign (the centre node, weight 8/15, adds nothing to a variance about the centre)
+GAUSS_HERMITE_5 = ((1.3556261799742659, 0.2220759220056126), (2.8569700138728056, 0.011257411327720693))
+
+
 def depth_lookup_variance(depth: np.ndarray, uv: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Variance (m^2, N) of the depth read at keypoints ``uv`` (N, 2; pixels of the depth image
-    ``depth``, metres, 0 = none) whose true position is off by independent errors with standard
-    deviations along the directions ``offsets`` (K, 2) or (K, N, 2) pixels, from sigma points:
-    ``sum_k (dZ(+o_k)^2 + dZ(-o_k)^2) / 2``, ``dZ(o)`` the change of the (nearest-pixel) depth
-    from ``uv`` to ``uv + o``.
+    ``depth``, metres, 0 = none) whose true position is off by independent Gaussian errors with
+    standard deviations along the directions ``offsets`` (K, 2) or (K, N, 2) pixels.
 
-    With offsets ``sigma e_u`` and ``sigma e_v`` (a keypoint localised to ``sigma`` pixels) it is
-    ``sigma^2 |grad Z|^2`` on a smooth surface and about half the squared jump beside a depth edge,
-    where the lookup can land on either side. A sigma point off the image or without depth is no
-    information: its direction uses the other sign alone, or nothing."""
+    Per direction ``o_k`` a 5-node Gauss-Hermite quadrature of the squared change of the
+    (nearest-pixel) depth: ``sum_j w_j [dZ(a_j o_k)^2 + dZ(-a_j o_k)^2]`` (:data:`GAUSS_HERMITE_5`),
+    summed over the directions. It is ``|o . grad Z|^2`` summed on a smooth surface and grows
+    with the chance that the lookup lands across a depth edge up to 2.9 sigma away. A node off the
+    image or without depth is no information: the other sign's value stands in for it.
+
+    On a real depth image the changes also hold the image's own noise between neighbouring pixels,
+    so the variance measures the local spread of the depth: shape and noise (docs/derivation.md)."""
     uv = np.asarray(uv, dtype=float)
     n = uv.shape[0]
     offsets = np.asarray(offsets, dtype=float)
@@ -213,17 +220,18 @@ def depth_lookup_variance(depth: np.ndarray, uv: np.ndarray, offsets: np.ndarray
     vi = np.clip(np.floor(uv[:, 1] + 0.5).astype(np.intp), 0, h - 1)
     zc = depth[vi, ui].astype(float)
     for off in offsets:
-        total = np.zeros(n)
-        count = np.zeros(n)
-        for sign in (1.0, -1.0):
-            with np.errstate(invalid="ignore"):
-                u2 = np.floor(uv[:, 0] + sign * off[:, 0] + 0.5)
-                v2 = np.floor(uv[:, 1] + sign * off[:, 1] + 0.5)
-                on = np.isfinite(u2) & np.isfinite(v2) & (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
-            z2 = depth[np.where(on, v2, 0).astype(np.intp), np.where(on, u2, 0).astype(np.intp)].astype(float)
-            with np.errstate(invalid="ignore"):
-                ok = on & np.isfinite(z2) & (z2 > 0)
-            total += np.where(ok, (z2 - zc) ** 2, 0.0)
-            count += ok
-        out += np.where(count > 0, total / np.maximum(count, 1), 0.0)
+        for node, weight in GAUSS_HERMITE_5:
+            total = np.zeros(n)
+            count = np.zeros(n)
+            for sign in (node, -node):
+                with np.errstate(invalid="ignore"):
+                    u2 = np.floor(uv[:, 0] + sign * off[:, 0] + 0.5)
+                    v2 = np.floor(uv[:, 1] + sign * off[:, 1] + 0.5)
+                    on = np.isfinite(u2) & np.isfinite(v2) & (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
+                z2 = depth[np.where(on, v2, 0).astype(np.intp), np.where(on, u2, 0).astype(np.intp)].astype(float)
+                with np.errstate(invalid="ignore"):
+                    ok = on & np.isfinite(z2) & (z2 > 0)
+                total += np.where(ok, (z2 - zc) ** 2, 0.0)
+                count += ok
+            out += 2.0 * weight * np.where(count > 0, total / np.maximum(count, 1), 0.0)
     return out

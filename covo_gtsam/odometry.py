@@ -145,11 +145,11 @@ class OdometryConfig:
     variance_factor: bool = False
     max_rotation_deg: float = 30.0
     max_translation_m: float = 0.5
-    correlation_factor: float = 1.34
+    correlation_factor: float = 1.32
     frame_sigma_rot_deg: float = 0.105
-    frame_sigma_trans_m: float = 0.00105
+    frame_sigma_trans_m: float = 0.00101
     frame_interval_s: float = 1.0 / 30.0
-    timing_sigma_s: float = 0.00068
+    timing_sigma_s: float = 0.00067
     integrity_threshold: float = 50.0
     frame_clock: bool = True
     depth_time_compensation: bool = False
