@@ -16,9 +16,10 @@ import numpy as np
 
 from covo_gtsam.estimator import (POSE_KEY, _lm_params, estimate_relative_pose, initial_guess, marginal_covariance,
                                   validate_inputs)
-from covo_gtsam.factors import residual_covariances, transfer_factor, whitened_system, whitening
+from covo_gtsam.factors import transfer_factor
 from covo_gtsam.noise import PixelNoise, PointNoiseModel
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements
+from covo_gtsam.transfer import residual_covariances, whitened_system, whitening
 
 
 def pairs(n: int, seed: int = 0):

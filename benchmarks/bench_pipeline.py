@@ -40,13 +40,12 @@ import gtsam
 import numpy as np
 
 from _common import sequence_from_command_line
+from covo_gtsam.datasets.images import load_depth, load_grey
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.estimator import estimate_relative_pose
 from covo_gtsam.frontend import (
     associate_frames,
     detect,
-    load_depth,
-    load_grey,
     make_orb,
     match,
     prepare_frame,
@@ -62,11 +61,11 @@ from covo_gtsam.rolling_shutter import compensate_points, frame_twists
 #: None of them calls another of a different stage, except ``prepare_frame``, which calls
 #: ``detect`` (subtracted, see :func:`stage_profile`).
 STAGES = {
-    "decode colour + depth (PNG)": [("frontend.py", "load_grey"), ("frontend.py", "load_depth")],
-    "ORB": [("frontend.py", "detect")],
-    "3D points + covariances": [("frontend.py", "prepare_frame")],
-    "matching": [("frontend.py", "match")],
-    "RANSAC": [("frontend.py", "ransac_rigid3d")],
+    "decode colour + depth (PNG)": [("images.py", "load_grey"), ("images.py", "load_depth")],
+    "ORB": [("matching.py", "detect")],
+    "3D points + covariances": [("points.py", "prepare_frame")],
+    "matching": [("matching.py", "match")],
+    "RANSAC": [("ransac.py", "ransac_rigid3d")],
     "solves (2 per pair)": [("odometry.py", "_solve")],
     "time compensation of points": [("odometry.py", "_to_frame_time"), ("rolling_shutter.py", "frame_twists")],
     "covariance terms + composition": [("odometry.py", "_error_bases"), ("odometry.py", "sensor_covariance"),
@@ -127,7 +126,7 @@ def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
 
 def pre_decoded_rate(seq, n: int) -> float:
     """Frames/s of the odometry on images decoded beforehand, preparing ahead as :mod:`covo_gtsam.pipeline` does."""
-    images = [(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i])) for i in range(n)]
+    images = [seq.load(i) for i in range(n)]
     vo = VisualOdometry(seq.camera)
     start = time.perf_counter()
     with kernel_threads(1), ThreadPoolExecutor(max_workers=PREFETCH) as pool:
@@ -145,7 +144,7 @@ def register_times(seq, n: int) -> tuple[np.ndarray, np.ndarray]:
     one thread, OpenCV and BLAS single-threaded as in `covo run`."""
     vo = VisualOdometry(seq.camera)
     with kernel_threads(1):
-        frames = [vo.prepare(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i])) for i in range(n)]
+        frames = [vo.prepare(*seq.load(i)) for i in range(n)]
         wall, cpu = [], []
         for i in range(n):
             w, c = time.perf_counter(), time.thread_time()
@@ -215,7 +214,7 @@ def stage_profile(stats: pstats.Stats) -> dict[str, float]:
     for (path, _, name), (_, _, _, cumulative, _) in stats.stats.items():
         inclusive[(path.rsplit("/", 1)[-1], name)] += cumulative
     out = {stage: sum(inclusive[f] for f in functions) for stage, functions in STAGES.items()}
-    out["3D points + covariances"] -= inclusive[("frontend.py", "detect")]
+    out["3D points + covariances"] -= inclusive[("matching.py", "detect")]
     out["other (Python glue, hand-offs, bookkeeping)"] = stats.total_tt - sum(out.values())
     return out
 

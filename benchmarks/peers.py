@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 
 from _common import sequence_from_command_line
-from covo_gtsam.frontend import load_depth, load_grey
 from covo_gtsam.metrics import relative_pose_errors, rpe_statistics
 from covo_gtsam.odometry import VisualOdometry
 
@@ -100,7 +99,8 @@ def main() -> None:
     frames = []
     for i in range(n):
         colour = cv2.imread(seq.rgb_paths[i])
-        frames.append((load_grey(seq.rgb_paths[i]), colour, load_depth(seq.depth_paths[i])))
+        grey, depth = seq.load(i)
+        frames.append((grey, colour, depth))
     if seq.groundtruth is None or not seq.gt_valid[:n].any():
         raise SystemExit(f"{seq.path}: no ground truth for the first {n} frames; nothing to score")
     gt, valid = seq.groundtruth[:n], seq.gt_valid[:n]

@@ -16,7 +16,7 @@ import numpy as np
 
 from .datasets.tum import TumSequence
 from .errors import DatasetError, InputError
-from .frontend import FrontendConfig, associate_frames, load_depth, load_grey, make_orb, prepare_frame
+from .frontend import FrontendConfig, associate_frames, make_orb, prepare_frame
 from .geometry import invert_pose
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 from .validation import MAX_PIXEL_SIGMA, MIN_PIXEL_SIGMA, check_int, check_real
@@ -63,7 +63,7 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
     per_pair, all_du, all_dv, all_dz = [], [], [], []
     for i in frames:
         try:
-            cur = prepare_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), cam, orb, model, cfg)
+            cur = prepare_frame(*seq.load(i), cam, orb, model, cfg)
         except InputError:  # missing, unreadable, corrupt or wrong-sized image: the pair chain restarts
             prev = None
             continue

@@ -368,7 +368,7 @@ def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentPa
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .factors import WEIGHTINGS
+    from .transfer import WEIGHTINGS
     from .simulation import MAX_DEPTH, MAX_POINTS, MAX_RUNS
     from .validation import MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA
 

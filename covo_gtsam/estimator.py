@@ -21,17 +21,17 @@ from .errors import (
     InputError,
     InsufficientPairsError,
 )
-from .factors import (
+from .factors import whitened_transfer_factor
+from .geometry import rotation_angle
+from .transfer import (
     WEIGHTINGS,
     is_positive_definite,
     residual_covariances,
     transfer_mahalanobis,
     weighted_rigid_fit,
     whitened_system,
-    whitened_transfer_factor,
     whitening,
 )
-from .geometry import rotation_angle
 from .validation import is_int, is_real
 
 #: Key of the relative pose in the estimator's graph.
@@ -247,7 +247,7 @@ def estimate_relative_pose(
     Args:
         X_k, X_k1: (N, 3) matched points in camera frames k and k+1 (metres).
         Q_k, Q_k1: (N, 3, 3) their covariances (m^2), symmetric positive definite.
-        weighting: ``"consistent"`` (default) or ``"thesis"`` (4.16); see :mod:`covo_gtsam.factors`.
+        weighting: ``"consistent"`` (default) or ``"thesis"`` (4.16); see :mod:`covo_gtsam.transfer`.
         scale: phi, multiplies the returned covariance (thesis uses 16; default 1).
         initial: initial guess of T_k,k1, a ``gtsam.Pose3`` or a 4x4 homogeneous matrix; a
             weighted closed-form rigid fit if None.

@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .factors import rotate_covariances, transfer_jacobians
 from .geometry import skew
+from .transfer import rotate_covariances, transfer_jacobians
 
 
 def transfer_gains(R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray,

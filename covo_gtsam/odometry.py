@@ -22,12 +22,13 @@ from .camera import Camera
 from .covariance import compose_covariance
 from .errors import ConfigError, CovoError, EstimationError, InputError
 from .estimator import ROBUST_KERNELS, RelativePoseResult, estimate_relative_pose
-from .factors import WEIGHTINGS
+from .transfer import WEIGHTINGS
 from .clock import FrameClock, restamp
 from .integrity import IntegrityScale, depth_free_check
-from .frontend import FrameData, FrontendConfig, PointPairs, associate_frames, make_orb, prepare_frame, to_grey
-from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel, depth_lookup_variance
+from .datasets.images import to_grey
+from .frontend import FrameData, FrontendConfig, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
+from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel, depth_lookup_variance
 from .frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, rolling_shutter_basis,
                            transfer_gains)
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets

@@ -15,10 +15,11 @@ Outputs in ``out_dir``:
   ground truth exists;
 * ``plots/`` -- PNG figures (unless disabled).
 
-The sequence is a :class:`~covo_gtsam.datasets.tum.TumSequence` (image files, decoded by path) or
-any object with the same attributes and a ``loader(n)`` method returning a thread-safe function
-``i -> (grey, depth in metres)`` (e.g. :class:`~covo_gtsam.datasets.rosbag.RosbagSequence`, which
-streams the bag).
+The sequence returns decoded frames: a :class:`~covo_gtsam.datasets.tum.TumSequence` (image
+files, decoded by :meth:`~covo_gtsam.datasets.tum.TumSequence.loader` at the run's camera size and
+``config.depth_scale``) or any object with the same attributes and a ``loader(n)`` method returning
+a thread-safe function ``i -> (grey, depth in metres)`` (e.g.
+:class:`~covo_gtsam.datasets.rosbag.RosbagSequence`, which streams the bag).
 
 The text files are flushed line by line, so an interrupted run leaves valid files for the frames
 processed so far. Decoding and feature extraction of the next frame run on a worker thread
@@ -43,7 +44,7 @@ import numpy as np
 from .camera import Camera
 from .datasets.tum import TumSequence
 from .errors import ConfigError, CovoError, DatasetError, InputError
-from .frontend import FrameData, load_depth, load_grey
+from .frontend import FrameData
 from .g2o import G2oWriter
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
 from .odometry import OdometryConfig, OdometryStep, VisualOdometry
@@ -154,20 +155,12 @@ def kernel_threads(n: int = 1):
 
 
 def _frame_loader(seq, n: int, depth_scale: float, camera: Camera):
-    """``i -> (grey, depth)`` for the frames of ``seq``: the sequence's own ``loader`` if it has one
-    (a bag), else the image files of a TUM folder (an image of another size than ``camera``'s is
-    an :class:`InputError` naming its file)."""
-    if hasattr(seq, "loader"):
-        return seq.loader(n)
-
-    def load(i: int):
-        grey = load_grey(seq.rgb_paths[i])
-        if grey.shape != (camera.height, camera.width):
-            raise InputError(f"{seq.rgb_paths[i]}: image is {grey.shape[1]}x{grey.shape[0]}, the camera's is "
-                             f"{camera.width}x{camera.height}")
-        return grey, load_depth(seq.depth_paths[i], depth_scale, shape=(camera.height, camera.width))
-
-    return load
+    """``i -> (grey, depth)`` for the frames of ``seq``: a TUM folder's image files decoded at
+    ``camera``'s size (an image of another size is an :class:`InputError` naming its file) with
+    ``depth_scale``, else the sequence's own ``loader(n)`` (a bag)."""
+    if isinstance(seq, TumSequence):
+        return seq.loader(camera, depth_scale)
+    return seq.loader(n)
 
 
 def _load_frame(vo: VisualOdometry, load, i: int, depth_offset: float = 0.0) -> FrameData | CovoError:

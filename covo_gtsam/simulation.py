@@ -21,9 +21,9 @@ import numpy as np
 from .camera import Camera
 from .errors import ConfigError, EstimationError
 from .estimator import estimate_relative_pose
-from .factors import WEIGHTINGS
 from .geometry import pose_from_tum
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
+from .transfer import WEIGHTINGS
 from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, check_choice, check_int, check_real,
                          is_real)
 

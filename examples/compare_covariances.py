@@ -63,9 +63,9 @@ import numpy as np
 from covo_gtsam.covariance import tangent_to_tq, tq_to_tangent
 from covo_gtsam.errors import CovoError
 from covo_gtsam.estimator import RelativePoseResult, estimate_relative_pose
-from covo_gtsam.factors import whitened_system, whitening
 from covo_gtsam.geometry import invert_pose, matrix_to_quat
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements, run_simulation
+from covo_gtsam.transfer import whitened_system, whitening
 
 DEFAULT_SEQ = Path(__file__).resolve().parents[1] / "data" / "rgbd_dataset_freiburg1_rpy_head40"
 AXES = ["rx", "ry", "rz", "tx", "ty", "tz"]
@@ -212,7 +212,7 @@ def cfg_noise_model(cfg: SimulationConfig):
 # ------------------------------------------------------------------------------------------------
 def real_part(seq_dir: Path, pair: int, gap: int, runs: int, seed: int) -> dict:
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.frontend import associate_frames, load_depth, load_grey
+    from covo_gtsam.frontend import associate_frames
     from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
     seq = TumSequence(seq_dir)
@@ -221,8 +221,7 @@ def real_part(seq_dir: Path, pair: int, gap: int, runs: int, seed: int) -> dict:
         raise CovoError(f"{seq_dir}: frame {j} does not exist ({len(seq)} frames)")
     config = OdometryConfig()
     vo = VisualOdometry(seq.camera, config)
-    frames = [vo.prepare(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i], config.depth_scale))
-              for i in (pair, j)]
+    frames = [vo.prepare(*seq.load(i, depth_scale=config.depth_scale)) for i in (pair, j)]
     pairs = associate_frames(frames[0], frames[1], config.frontend)
     n = len(pairs)
     if n < config.frontend.min_pairs:

@@ -82,12 +82,11 @@ def test_repeated_stamp_with_the_clock_gives_no_velocity(sample_dir):
     """A frame that repeats the previous frame's stamp, once the clock is running: tracked, with no
     velocity (no interval to divide by) and a finite covariance; the next frame tracks as usual."""
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.frontend import load_depth, load_grey
     from covo_gtsam.odometry import VisualOdometry
 
     seq = TumSequence(sample_dir)
     vo = VisualOdometry(seq.camera)
-    frames = [(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i])) for i in range(27)]
+    frames = [seq.load(i) for i in range(27)]
     for i in range(25):
         vo.register_frame(*frames[i], float(seq.timestamps[i]))
     assert vo.steps[-1].clock_samples > 0

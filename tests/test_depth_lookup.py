@@ -66,10 +66,8 @@ def test_image_velocities_match_finite_differences_of_the_projection():
 
 def test_depth_edges_widen_the_point_covariances_of_a_real_frame(sample_dir):
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.frontend import load_depth, load_grey
 
-    seq = TumSequence(sample_dir)
-    grey, depth = load_grey(seq.rgb_paths[0]), load_depth(seq.depth_paths[0])
+    grey, depth = TumSequence(sample_dir).load(0)
     plain = VisualOdometry("fr1", OdometryConfig(depth_lookup_noise=False)).prepare(grey, depth)
     edges = VisualOdometry("fr1", OdometryConfig()).prepare(grey, depth)
     v = plain.valid
@@ -87,14 +85,13 @@ def test_depth_edges_widen_the_point_covariances_of_a_real_frame(sample_dir):
 
 def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_dir):
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.frontend import load_depth, load_grey
 
     seq = TumSequence(sample_dir)
 
     def run(offset_s, factor):
         vo = VisualOdometry("fr1", OdometryConfig(depth_offset_factor=factor, frame_clock=False))
-        steps = [vo.register_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i],
-                                   depth_timestamp=seq.timestamps[i] + offset_s) for i in range(4)]
+        steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.timestamps[i] + offset_s)
+                 for i in range(4)]
         return steps[-1]
 
     base, off, off_ignored = run(0.0, 1.0), run(0.02, 1.0), run(0.02, 0.0)

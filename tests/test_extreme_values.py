@@ -16,7 +16,6 @@ from hypothesis import strategies as st
 
 from covo_gtsam.cli import main
 from covo_gtsam.errors import InputError
-from covo_gtsam.frontend import load_depth, load_grey
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
 from covo_gtsam import odometry
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
@@ -96,7 +95,7 @@ def test_register_frame_after_a_huge_gap_is_lost(sample_dir):
 
     seq = TumSequence(sample_dir)
     vo = VisualOdometry("fr1")
-    images = [(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i])) for i in range(2)]
+    images = [seq.load(i) for i in range(2)]
     assert vo.register_frame(*images[0], seq.timestamps[0]).status == "first"
     step = vo.register_frame(*images[1], 1e300)
     assert step.status == "lost" and step.covariance is None and "reference frame" in step.reason

@@ -10,15 +10,17 @@ from covo_gtsam.factors import (
     compress_system,
     pair_between_factor,
     pair_factor,
-    residual_covariances,
     transfer_between_factor,
     transfer_factor,
+)
+from covo_gtsam.transfer import (
+    residual_covariances,
     transfer_jacobians,
     transfer_residuals,
     whitened_system,
     whitening,
 )
-from covo_gtsam.factors import whitened_error as numpy_whitened_error
+from covo_gtsam.transfer import whitened_error as numpy_whitened_error
 
 K0, K1 = gtsam.symbol("x", 0), gtsam.symbol("x", 1)
 
@@ -122,7 +124,7 @@ def whitened_error(factor, values):
 
 
 def stacked_error(X_k, X_k1, C_b, C_f):
-    """Pose -> the 6N whitened two-way error in numpy (:func:`factors.whitened_error`, the
+    """Pose -> the 6N whitened two-way error in numpy (:func:`transfer.whitened_error`, the
     vectorised factors' model; differentiated numerically, never through the analytic Jacobian)."""
     W_b, W_f = whitening(C_b), whitening(C_f)
     return lambda P: numpy_whitened_error(P.rotation().matrix(), P.translation(), X_k, X_k1, W_b, W_f)

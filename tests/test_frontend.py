@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -10,7 +12,9 @@ import pytest
 
 from covo_gtsam import frontend as fe
 from covo_gtsam.camera import Camera
+from covo_gtsam.datasets.images import load_depth, load_grey
 from covo_gtsam.errors import ConfigError, InputError
+from covo_gtsam.frontend import matching
 from covo_gtsam.geometry import invert_pose, make_pose, quat_to_matrix, rotation_angle
 from covo_gtsam.noise import PointNoiseModel
 
@@ -79,8 +83,17 @@ def frames(seq, camera) -> dict[int, fe.FrameData]:
     out = {}
     for i in (0, 1, 10):
         rgb, depth = seq.paths(i)
-        out[i] = fe.prepare_frame(fe.load_grey(rgb), fe.load_depth(depth), camera, orb, PointNoiseModel(), cfg)
+        out[i] = fe.prepare_frame(load_grey(rgb), load_depth(depth), camera, orb, PointNoiseModel(), cfg)
     return out
+
+
+def test_front_end_imports_no_gtsam():
+    """The front end (and the transfer maths of its RANSAC) runs without GTSAM: importing it in a
+    fresh interpreter must not load ``gtsam``."""
+    code = "import covo_gtsam.frontend, sys; assert 'gtsam' not in sys.modules; print(covo_gtsam.__file__)"
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert Path(proc.stdout.strip()).resolve().is_relative_to(REPO / "covo_gtsam")
 
 
 # ------------------------------------------------------------------------------------------
@@ -166,7 +179,7 @@ def test_match_equals_opencv_cross_check_on_real_pair(frames):
 def test_match_blockwise_equals_single_block(frames, monkeypatch):
     fa, fb = frames[0].features, frames[1].features
     whole = fe.match(fa, fb)
-    monkeypatch.setattr(fe, "MATCH_BLOCK_ENTRIES", 7 * len(fb))  # 7 rows per block
+    monkeypatch.setattr(matching, "MATCH_BLOCK_ENTRIES", 7 * len(fb))  # 7 rows per block
     blocks = fe.match(fa, fb)
     for x, y in zip(whole, blocks):
         np.testing.assert_array_equal(x, y)
@@ -177,7 +190,7 @@ def test_match_blockwise_equals_single_block(frames, monkeypatch):
 @pytest.mark.parametrize("norm, hamming2", [(cv2.NORM_HAMMING, False), (cv2.NORM_HAMMING2, True)])
 def test_hamming_distances_equal_opencv_norm(norm, hamming2, lookup_table, monkeypatch):
     if lookup_table:
-        monkeypatch.setattr(fe, "_POPCOUNT16", fe._popcount_table())
+        monkeypatch.setattr(matching, "_POPCOUNT16", matching._popcount_table())
     rng = np.random.default_rng(3)
     a = rng.integers(0, 256, (37, 32), dtype=np.uint8)
     b = rng.integers(0, 256, (29, 32), dtype=np.uint8)
@@ -279,7 +292,7 @@ def test_keypoint_octaves_and_per_level_pixel_noise(seq, camera):
     cfg = fe.FrontendConfig()
     orb = fe.make_orb(cfg)
     rgb, depth = seq.paths(0)
-    grey, d = fe.load_grey(rgb), fe.load_depth(depth)
+    grey, d = load_grey(rgb), load_depth(depth)
     keypoints = orb.detect(grey, None)
     flat = fe.prepare_frame(grey, d, camera, orb, PointNoiseModel(), cfg)
     levels = fe.prepare_frame(grey, d, camera, orb, PointNoiseModel(), cfg, pixel_sigma_by_level=True)
@@ -406,7 +419,7 @@ def test_transfer_mahalanobis_matches_direct_solve():
     r = X_ref - (X_cur @ R.T + t)
     S = Q_ref + R @ Q_cur @ R.T
     expected = np.einsum("ni,ni->n", r, np.linalg.solve(S, r[..., None])[..., 0])
-    from covo_gtsam.factors import transfer_mahalanobis
+    from covo_gtsam.transfer import transfer_mahalanobis
 
     np.testing.assert_allclose(transfer_mahalanobis(R, t, X_ref, X_cur, Q_ref, Q_cur), expected, rtol=1e-9)
     # not positive definite -> inf, never a negative or NaN distance
@@ -420,7 +433,7 @@ def test_transfer_mahalanobis_matches_direct_solve():
 def test_weighted_rigid_fit_uses_inverse_trace_weights():
     """The same 20 points twice, the second copy shifted by 10 cm in x and with larger covariances:
     no rotation, and the translation is the mean shift weighted by 1 / trace(Q_ref + Q_cur)."""
-    from covo_gtsam.factors import weighted_rigid_fit
+    from covo_gtsam.transfer import weighted_rigid_fit
 
     rng = np.random.default_rng(1)
     pts = rng.uniform(-1, 1, (20, 3)) + [0, 0, 3]
@@ -492,71 +505,3 @@ def test_associate_frames_other_rejections(frames):
     assert rigid.num_matches == none.num_matches and rigid.num_inliers < rigid.num_matches
     pairs_rigid = set(zip(rigid.idx_ref.tolist(), rigid.idx_cur.tolist()))
     assert pairs_rigid <= set(zip(none.idx_ref.tolist(), none.idx_cur.tolist()))
-
-
-# ------------------------------------------------------------------------------------------
-# image loading
-# ------------------------------------------------------------------------------------------
-def _write_png(path: Path, array: np.ndarray) -> Path:
-    assert cv2.imwrite(str(path), array)
-    return path
-
-
-def test_load_depth_reads_metres(tmp_path):
-    raw = np.zeros((480, 640), np.uint16)
-    raw[10, 20] = 5000
-    raw[11, 21] = 12345
-    depth = fe.load_depth(_write_png(tmp_path / "d.png", raw))
-    assert depth.dtype == np.float32 and depth.shape == (480, 640)
-    assert depth[10, 20] == pytest.approx(1.0) and depth[11, 21] == pytest.approx(12345 / 5000)
-    assert depth[0, 0] == 0.0
-    assert fe.load_depth(tmp_path / "d.png", depth_scale=1000.0)[10, 20] == pytest.approx(5.0)
-
-
-def test_load_depth_rejects_8bit(tmp_path):
-    p = _write_png(tmp_path / "depth8.png", np.full((480, 640), 7, np.uint8))
-    with pytest.raises(InputError, match=r"depth8\.png.*8-bit"):
-        fe.load_depth(p)
-
-
-def test_load_depth_rejects_wrong_size(tmp_path):
-    p = _write_png(tmp_path / "small.png", np.zeros((240, 320), np.uint16))
-    with pytest.raises(InputError, match=r"small\.png.*320x240.*expected 640x480"):
-        fe.load_depth(p)
-    assert fe.load_depth(p, shape=None).shape == (240, 320)
-    assert fe.load_depth(p, shape=(240, 320)).shape == (240, 320)
-
-
-def test_load_depth_rejects_colour(tmp_path):
-    p = _write_png(tmp_path / "rgb16.png", np.zeros((480, 640, 3), np.uint16))
-    with pytest.raises(InputError, match="3 channels"):
-        fe.load_depth(p)
-
-
-def test_load_depth_rejects_truncated_and_missing(tmp_path):
-    noise = np.random.default_rng(0).integers(0, 60000, (480, 640)).astype(np.uint16)
-    full = _write_png(tmp_path / "full.png", noise)
-    cut = tmp_path / "cut.png"
-    cut.write_bytes(full.read_bytes()[: full.stat().st_size // 2])
-    with pytest.raises(InputError, match=r"cut\.png.*unreadable or corrupt"):
-        fe.load_depth(cut)
-    with pytest.raises(InputError, match="does not exist"):
-        fe.load_depth(tmp_path / "nope.png")
-    with pytest.raises(InputError, match="unreadable or corrupt"):
-        fe.load_grey(cut)
-
-
-def test_load_grey_and_to_grey(tmp_path):
-    rng = np.random.default_rng(2)
-    bgr = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
-    grey = fe.load_grey(_write_png(tmp_path / "c.png", bgr))
-    assert grey.shape == (48, 64) and grey.dtype == np.uint8
-    np.testing.assert_array_equal(fe.to_grey(bgr), cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
-    np.testing.assert_array_equal(fe.to_grey(bgr[:, :, ::-1], bgr=False), fe.to_grey(bgr))
-    np.testing.assert_array_equal(fe.to_grey(np.dstack([bgr, np.full((48, 64), 255, np.uint8)])), fe.to_grey(bgr))
-    np.testing.assert_array_equal(fe.to_grey(grey[:, :, None]), grey)
-    assert fe.to_grey(grey) is not None
-    with pytest.raises(InputError, match="uint8"):
-        fe.to_grey(bgr.astype(np.float32))
-    with pytest.raises(InputError, match="shape"):
-        fe.to_grey(np.zeros((4, 4, 2), np.uint8))

@@ -179,13 +179,12 @@ def test_between_factors_from_real_odometry():
     tum = pytest.importorskip("covo_gtsam.datasets.tum")
     if not seq_dir.is_dir():
         pytest.skip("sample sequence missing")
-    from covo_gtsam.frontend import load_depth, load_grey
     from covo_gtsam.odometry import VisualOdometry
 
     seq = tum.TumSequence(seq_dir)
     vo = VisualOdometry(seq.camera)
     for i in range(4):
-        vo.register_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i])
+        vo.register_frame(*seq.load(i), seq.timestamps[i])
     factors, initial = between_factors(vo.steps)
     tracked = [s for s in vo.steps if s.status == "tracked"]
     assert len(factors) == len(tracked) >= 1

@@ -105,7 +105,6 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
     import gtsam
 
     from covo_gtsam.errors import ConfigError
-    from covo_gtsam.frontend import load_depth, load_grey
     from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
     seq = TumSequence(sample_dir)
@@ -120,7 +119,7 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
             ahead = gtsam.Pose3.Expmap(scale * gtsam.Pose3.Logmap(s_prev.pose.between(s_last.pose)))
             expected = ref_step.pose.between(s_last.pose).compose(ahead)
             np.testing.assert_allclose(guess.matrix(), expected.matrix(), atol=1e-12)
-        step = vo.register_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i])
+        step = vo.register_frame(*seq.load(i), seq.timestamps[i])
         assert step.tracked
         if guess is not None and step.ref_timestamp == ref_step.timestamp:
             still = ref_step.pose.between(vo.steps[-2].pose)

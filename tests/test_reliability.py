@@ -177,8 +177,8 @@ def test_run_restarts_after_a_run_of_lost_frames(sample_dir):
     """Frames 3..4 are blank, then the view jumps (flipped images, which cannot be matched to the
     last good frame): after restart_after lost frames the next frame starts a new segment and
     the frames after it are tracked again instead of being lost for good."""
+    from covo_gtsam.datasets.images import load_depth
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.frontend import load_depth
     from covo_gtsam.graph import between_factors
     from covo_gtsam.odometry import OdometryConfig
 
@@ -508,11 +508,10 @@ def test_string_scale_is_a_clear_error():
 def test_register_frame_rejects_bad_timestamps(sample_dir):
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.errors import InputError
-    from covo_gtsam.frontend import load_depth, load_grey
 
     seq = TumSequence(sample_dir)
     vo = VisualOdometry(seq.camera)
-    frame = vo.prepare(load_grey(seq.rgb_paths[0]), load_depth(seq.depth_paths[0]))
+    frame = vo.prepare(*seq.load(0))
     assert vo.register_frame(frame, timestamp=10.0).status == "first"
     for bad, needle in ((float("nan"), "finite"), (float("inf"), "finite"), (9.5, "earlier"), ("11", "number"),
                         (None, "number")):
@@ -589,15 +588,13 @@ def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
     the reported covariance is kappa times the estimator's plus that term."""
     from covo_gtsam.calibration import ERROR_TERMS
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.frontend import load_depth, load_grey
     from covo_gtsam.odometry import OdometryConfig
 
     seq = TumSequence(sample_dir)
     # the frame term alone: no frame-level terms, no restamping by the frame clock
     cfg = OdometryConfig(frame_clock=False, **{name: 0.0 for name in ERROR_TERMS.values()})
     vo = VisualOdometry(seq.camera, cfg)
-    steps = [vo.register_frame(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i])
-             for i in (0, 1, 3)]
+    steps = [vo.register_frame(*seq.load(i), seq.timestamps[i]) for i in (0, 1, 3)]
     assert [s.status for s in steps] == ["first", "tracked", "tracked"]
     for step, k in ((steps[1], 1), (steps[2], 2)):
         assert cfg.frame_intervals(step.timestamp - step.ref_timestamp) == k

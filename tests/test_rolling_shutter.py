@@ -94,11 +94,10 @@ def test_odometry_compensation_on_real_frames(sample_dir):
     """On the sample's fast turn, compensation changes the relative poses (by far less than the
     motion) and stores each tracked frame's twist; with readout 0 the old path runs unchanged."""
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.frontend import load_depth, load_grey
     from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
     seq = TumSequence(sample_dir)
-    frames = [(load_grey(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i]) for i in range(12)]
+    frames = [(*seq.load(i), seq.timestamps[i]) for i in range(12)]
     runs = {}
     for readout in (0.0, 0.025):
         # without the frame clock, relative poses stay between the captures (velocity = Log(T) / dt)

@@ -17,9 +17,9 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
 
 from covo_gtsam.cli import main  # noqa: E402
+from covo_gtsam.datasets.images import load_depth  # noqa: E402
 from covo_gtsam.datasets.rosbag import RosbagSequence  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
-from covo_gtsam.frontend import load_depth  # noqa: E402
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory  # noqa: E402
 
 N = 20

@@ -74,7 +74,7 @@ def _field(msg, *names):
 
 def decode_colour(msg, topic: str = "") -> np.ndarray:
     """Grey uint8 (H, W) of a ``sensor_msgs/Image`` in rgb8, bgr8 or mono8."""
-    from ..frontend import to_grey
+    from .images import to_grey
 
     h, w, step, enc = int(msg.height), int(msg.width), int(msg.step), msg.encoding
     channels = {"rgb8": 3, "bgr8": 3, "mono8": 1}.get(enc)

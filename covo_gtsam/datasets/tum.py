@@ -3,7 +3,10 @@
 Colour and depth are associated by nearest timestamp, at most ``max_dt`` (0.02 s) apart,
 one-to-one, smallest difference first (the benchmark's ``associate.py``). Ground truth
 (T_world,cam of the colour camera, ~100 Hz) is interpolated at the colour timestamps: linear in
-translation, slerp in rotation. Images are not decoded here.
+translation, slerp in rotation. Frames are decoded on request (:meth:`TumSequence.load`,
+:meth:`~TumSequence.loader`, :meth:`~TumSequence.images`): the grey image and the depth in metres,
+raw 16-bit values divided by the sequence's ``depth_scale`` (:data:`DEPTH_SCALE`, 5000 per metre,
+unless given).
 """
 
 from __future__ import annotations
@@ -15,21 +18,27 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError, InputError
 from ..geometry import make_pose, matrix_to_quat, quat_to_matrix
 from ..io import data_lines, file_problem, load_tum_trajectory
+from ..validation import check_real
+from .images import load_depth, load_grey
 
 #: Largest ground-truth position coordinate (m) used: beyond it (far beyond any geodetic coordinate)
 #: relative poses of two frames lose all precision or overflow, so such frames count as without
 #: ground truth.
 MAX_GT_COORDINATE = 1e9
+#: Raw units per metre of the TUM depth images (16-bit PNG, value / 5000 = metres).
+DEPTH_SCALE = 5000.0
 
-__all__ = ["Frame", "TumSequence", "associate", "interpolate_poses", "read_file_list", "camera_name_from_path"]
+__all__ = ["DEPTH_SCALE", "Frame", "TumSequence", "associate", "interpolate_poses", "read_file_list",
+           "camera_name_from_path"]
 
 
 @dataclass(frozen=True)
 class Frame:
-    """One associated frame: colour timestamp (s) and absolute image paths (not decoded)."""
+    """One associated frame: colour timestamp (s) and absolute image paths (not decoded; see
+    :meth:`TumSequence.load`)."""
 
     timestamp: float
     rgb_path: str
@@ -172,12 +181,20 @@ class TumSequence:
     ``camera`` is the given camera (a :class:`~covo_gtsam.camera.Camera`, or a preset name such as
     ``"fr1"``, which must be known: :class:`ConfigError` otherwise), else the preset named by
     ``camera_name`` (reading it raises :class:`DatasetError` when neither is known).
+    ``depth_scale`` is the depth images' raw units per metre (:data:`DEPTH_SCALE` unless given; a
+    positive number, :class:`ConfigError` otherwise).
+
+    Frames are decoded by :meth:`load` (one frame), :meth:`loader` (a thread-safe function of the
+    frame index) and :meth:`images` (frames in order).
 
     Raises :class:`DatasetError` when the folder, ``rgb.txt`` or ``depth.txt`` is missing, a line
     is malformed, no frame can be associated, or no associated frame has both of its images.
     """
 
-    def __init__(self, path: str | os.PathLike, camera=None, max_dt: float = 0.02, max_gap: float = 0.1) -> None:
+    def __init__(self, path: str | os.PathLike, camera=None, max_dt: float = 0.02, max_gap: float = 0.1,
+                 depth_scale: float = DEPTH_SCALE) -> None:
+        check_real("depth_scale", depth_scale, "positive")
+        self.depth_scale = float(depth_scale)
         self.path = Path(os.path.abspath(os.fspath(path)))
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: sequence folder does not exist")
@@ -253,6 +270,45 @@ class TumSequence:
 
     def __iter__(self):
         return (self[i] for i in range(len(self)))
+
+    def load(self, i: int, camera=None, depth_scale: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``i`` decoded: ``(grey uint8 (H, W), depth float32 metres (H, W))``, 0 = no depth.
+
+        Depth is the raw 16-bit value / ``depth_scale`` (the sequence's :attr:`depth_scale` if
+        None); both images must have the size of ``camera`` (the sequence's :attr:`camera` if None).
+
+        Raises:
+            InputError: an image file is missing, unreadable or corrupt, the depth image is not a
+                single-channel 16-bit image, or an image is not of the camera's size (the message
+                names the file).
+        """
+        camera = self.camera if camera is None else camera
+        depth_scale = self.depth_scale if depth_scale is None else depth_scale
+        grey = load_grey(self.rgb_paths[i])
+        if grey.shape != (camera.height, camera.width):
+            raise InputError(f"{self.rgb_paths[i]}: image is {grey.shape[1]}x{grey.shape[0]}, the camera's is "
+                             f"{camera.width}x{camera.height}")
+        return grey, load_depth(self.depth_paths[i], depth_scale, shape=(camera.height, camera.width))
+
+    def loader(self, camera=None, depth_scale: float | None = None):
+        """A thread-safe function ``i -> load(i, camera, depth_scale)`` (frames are files, decoded
+        independently in any order)."""
+
+        def load(i: int):
+            return self.load(i, camera, depth_scale)
+
+        return load
+
+    def images(self, n: int | None = None):
+        """``(grey, depth in metres)`` of frames ``0 .. n-1`` (all if None) in order (:meth:`load`);
+        a frame that cannot be decoded yields its :class:`InputError` in its place, as
+        :meth:`~covo_gtsam.datasets.rosbag.RosbagSequence.images` does."""
+        n = len(self) if n is None else min(int(n), len(self))
+        for i in range(n):
+            try:
+                yield self.load(i)
+            except InputError as exc:
+                yield exc
 
     def frames(self, start: int, stop: int | None = None) -> "TumSequence":
         """The same sequence restricted to frames ``start`` to ``stop - 1`` (a copy; ``stop`` None:
