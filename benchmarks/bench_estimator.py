@@ -14,8 +14,14 @@ import time
 import gtsam
 import numpy as np
 
-from covo_gtsam.estimator import (POSE_KEY, _lm_params, estimate_relative_pose, initial_guess, marginal_covariance,
-                                  validate_inputs)
+from covo_gtsam.estimator import (
+    POSE_KEY,
+    _lm_params,
+    estimate_relative_pose,
+    initial_guess,
+    marginal_covariance,
+    validate_inputs,
+)
 from covo_gtsam.factors import transfer_factor
 from covo_gtsam.noise import PixelNoise, PointNoiseModel
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements
@@ -52,7 +58,7 @@ def main() -> None:
         data = pairs(n)
         for w in ("consistent", "thesis"):
             res = estimate_relative_pose(*data, weighting=w)
-            t = timed(lambda: estimate_relative_pose(*data, weighting=w), args.repeats)
+            t = timed(lambda data=data, w=w: estimate_relative_pose(*data, weighting=w), args.repeats)
             print(f"{n:>6} {w:>11} {np.median(t):>10.2f} {np.percentile(t, 90):>8.2f} {res.iterations:>10}")
     if args.no_breakdown:
         return

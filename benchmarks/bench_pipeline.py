@@ -39,7 +39,7 @@ from concurrent.futures import ThreadPoolExecutor
 import gtsam
 import numpy as np
 
-from _common import sequence_from_command_line
+from covo_gtsam import pipeline
 from covo_gtsam.datasets.images import load_depth, load_grey
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.estimator import estimate_relative_pose
@@ -51,11 +51,12 @@ from covo_gtsam.frontend import (
     prepare_frame,
     ransac_rigid3d,
 )
-from covo_gtsam import pipeline
 from covo_gtsam.io import format_relative_line, format_tum_line
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 from covo_gtsam.pipeline import PREFETCH, kernel_threads, run_sequence
 from covo_gtsam.rolling_shutter import compensate_points, frame_twists
+
+from _common import sequence_from_command_line
 
 #: Profile stages: (module file, function) pairs whose inclusive CPU time makes up the stage.
 #: None of them calls another of a different stage, except ``prepare_frame``, which calls
@@ -114,12 +115,12 @@ def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
             pairs = associate_frames(prev, frame, fe)
             res = clock("solve + marginals", estimate_relative_pose, pairs.X_ref, pairs.X_cur, pairs.Q_ref,
                         pairs.Q_cur, initial=None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
-            if cfg.rolling_shutter_s > 0:
+            if cfg.sensor.rolling_shutter_s > 0:
                 dt = seq.timestamps[i] - seq.timestamps[i - 1]
                 res = clock("rolling shutter: compensate + solve again", compensated_solve, pairs, res, dt,
-                            seq.camera.height, cfg.rolling_shutter_s)
-            clock("output lines", lambda: (format_tum_line(0.0, res.matrix),
-                                            format_relative_line(0.0, 0.0, res.matrix, res.covariance)))
+                            seq.camera.height, cfg.sensor.rolling_shutter_s)
+            clock("output lines", lambda res=res: (format_tum_line(0.0, res.matrix),
+                                                    format_relative_line(0.0, 0.0, res.matrix, res.covariance)))
         prev = frame
     return {k: np.array(v) for k, v in t.items()}
 

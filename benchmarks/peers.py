@@ -17,9 +17,10 @@ import time
 import cv2
 import numpy as np
 
-from _common import sequence_from_command_line
 from covo_gtsam.metrics import relative_pose_errors, rpe_statistics
 from covo_gtsam.odometry import VisualOdometry
+
+from _common import sequence_from_command_line
 
 
 def valid_rpe(gt: np.ndarray, valid: np.ndarray, poses: np.ndarray, delta: int) -> dict | None:
@@ -41,11 +42,11 @@ def run_covo(seq, frames):
     vo = VisualOdometry(seq.camera)
     times, poses = [], [np.eye(4)]
     last = np.eye(4)
-    for k, (grey, colour, depth) in enumerate(frames):
+    for k, (grey, _colour, depth) in enumerate(frames):
         t = time.perf_counter()
         step = vo.register_frame(grey, depth, seq.timestamps[k])
         times.append(time.perf_counter() - t)
-        if k and step.tracked:
+        if k and step.has_pose:
             last = step.pose.matrix()
         if k:
             poses.append(last)

@@ -1,9 +1,10 @@
 """covo-gtsam: error-aware RGB-D visual odometry on GTSAM.
 
-The public API, importable from the package itself (loaded on first use, so ``covo --help`` stays
-quick)::
+The public API, importable from the package itself (loaded on first use, so ``import covo_gtsam``
+and ``covo --help`` stay quick)::
 
     from covo_gtsam import Camera, OdometryConfig, VisualOdometry, estimate_relative_pose
+    from covo_gtsam import TumSequence, run_sequence, evaluate_run, RunEvaluation
 """
 
 from importlib import import_module
@@ -17,14 +18,25 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree wi
 #: public name -> module that holds it
 _PUBLIC = {
     "Camera": "camera",
-    "OdometryConfig": "odometry",
-    "OdometryStep": "odometry",
+    "OdometryConfig": "config",
+    "OdometryStep": "steps",
+    "StepStatus": "steps",
+    "StepHistory": "steps",
     "VisualOdometry": "odometry",
     "FrontendConfig": "frontend",
     "estimate_relative_pose": "estimator",
     "RelativePoseResult": "estimator",
+    "load_config": "config",
+    "save_config": "config",
     "TumSequence": "datasets.tum",
     "run_sequence": "pipeline",
+    "RunResult": "pipeline",
+    "evaluate_run": "evaluation",
+    "RunEvaluation": "evaluation",
+    "ate": "metrics",
+    "rpe": "metrics",
+    "relative_pose_nees": "metrics",
+    "chi2_quantile": "chi2",
     "CovoError": "errors",
 }
 
@@ -37,3 +49,7 @@ def __getattr__(name: str):
         globals()[name] = value
         return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_PUBLIC})

@@ -49,7 +49,7 @@ from .errors import InputError
 __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance", "sensor_covariance",
            "log_likelihood", "fit_sensor_terms"]
 
-#: Frame-level error terms and the :class:`~covo_gtsam.odometry.OdometryConfig` field holding each sigma.
+#: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
                "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s"}
 #: The terms of the default model (the others fitted unstably across the halves of the shared
@@ -74,7 +74,7 @@ class SensorTerms:
     sigmas: dict = field(default_factory=dict)
 
     def config_values(self) -> dict:
-        """The fit as :class:`~covo_gtsam.odometry.OdometryConfig` settings."""
+        """The fit as :class:`~covo_gtsam.config.SensorConfig` settings (the ``sensor`` group)."""
         out = {"correlation_factor": self.correlation_factor, "frame_sigma_rot_deg": self.frame_sigma_rot_deg,
                "frame_sigma_trans_m": self.frame_sigma_trans_m}
         out.update({ERROR_TERMS[k]: v for k, v in self.sigmas.items()})
@@ -139,7 +139,7 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
     (:func:`covo_gtsam.metrics.relative_pose_tangent_errors`; right perturbation, ``[omega, v]``);
     ``point_covs`` (N, 6, 6): the estimator's per-point covariance of the same pairs (run with
     ``correlation_factor = 1`` and no other term); ``bases``: term name -> (N, 6, 6) basis of
-    each pair (:attr:`~covo_gtsam.odometry.OdometryStep.error_bases`); ``fixed`` (N, 6, 6): known
+    each pair (:attr:`~covo_gtsam.steps.OdometryStep.error_bases`); ``fixed`` (N, 6, 6): known
     terms added as they are (e.g. a prior's). Needs at least 10 pairs.
     """
     errors = np.asarray(errors, dtype=float)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import warnings
 from pathlib import Path
 
 from .errors import ConfigError, CovoError
@@ -56,17 +57,25 @@ def _float_in(minimum: float | None = None, maximum: float | None = None):
     return parse
 
 
-def load_config_file(path: str):
-    """Read an odometry configuration from a TOML (.toml) or JSON file."""
-    from .io import read_settings_file
-    from .odometry import OdometryConfig
+def _setting(cls, name: str):
+    """argparse type of the declared setting ``name`` of the settings class ``cls``: its range as
+    declared (:mod:`covo_gtsam.validation`)."""
+    import dataclasses
 
-    p = Path(path)
-    data = read_settings_file(p, "configuration file")
-    try:
-        return OdometryConfig.from_dict(data)
-    except ConfigError as exc:
-        raise ConfigError(f"{p}: {exc}") from exc
+    meta = next(f for f in dataclasses.fields(cls) if f.name == name).metadata
+    if meta["kind"] == "int":
+        return _int_in(meta["minimum"], meta["maximum"])
+    return _float_in(meta["minimum"], meta["maximum"])
+
+
+def load_config_file(path: str):
+    """Deprecated: :func:`covo_gtsam.config.load_config` (removed from the command line module in
+    the next release)."""
+    from .config import load_config
+
+    warnings.warn("covo_gtsam.cli.load_config_file is deprecated; use covo_gtsam.config.load_config",
+                  DeprecationWarning, stacklevel=2)
+    return load_config(path)
 
 
 #: Exit code of ``covo run`` when no frame could be tracked (the results folder is still written).
@@ -78,9 +87,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     config = _load_config(args)
     if args.weighting:
-        config = _replace(config, weighting=args.weighting)
+        config = config.replace(estimator={"weighting": args.weighting})
     if args.scale is not None:
-        config = _replace(config, scale=args.scale)
+        config = config.replace(estimator={"scale": args.scale})
     seq = _sequence(args)
     _check_config_fits(args, config, seq)
     if args.bag_out:
@@ -117,12 +126,20 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _load_config(args: argparse.Namespace):
     """The odometry configuration of ``--config``, or the default one; a ``--camera`` file's
-    ``depth_scale`` replaces the configuration's."""
-    from .odometry import OdometryConfig
+    ``depth_scale`` replaces the configuration's. A deprecation of the file's form is one
+    ``covo: warning:`` line on stderr (unless Python's warnings options say otherwise)."""
+    from .config import OdometryConfig, load_config
 
-    config = load_config_file(args.config) if args.config else OdometryConfig()
+    config = OdometryConfig()
+    if args.config:
+        with warnings.catch_warnings(record=True) as caught:
+            if not sys.warnoptions:
+                warnings.simplefilter("default", DeprecationWarning)
+            config = load_config(args.config)
+        for w in caught:
+            print(f"covo: warning: {w.message}", file=sys.stderr)
     _, depth_scale = _camera(args)
-    return config if depth_scale is None else _replace(config, depth_scale=depth_scale)
+    return config if depth_scale is None else config.replace(sensor={"depth_scale": depth_scale})
 
 
 def _camera(args: argparse.Namespace):
@@ -156,12 +173,6 @@ def _check_config_fits(args: argparse.Namespace, config, seq) -> None:
             config.frontend.check_image_size(seq.camera.width, seq.camera.height)
         except ConfigError as exc:
             raise ConfigError(f"{args.config}: {exc}") from exc
-
-
-def _replace(config, **kw):
-    import dataclasses
-
-    return dataclasses.replace(config, **kw)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -288,6 +299,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                  if anees_t is not None and anees_r is not None else "no ANEES (see per_point_run/metrics.json)")
         print(f"{fit.pairs} consecutive pairs with ground truth; the per-point model alone gives {anees}")
         print("maximum-likelihood sensor terms (configuration lines):")
+        print("[sensor]")
         for name, value in fit.config_values().items():
             print(f"{name} = {value:.3g}")
         print(f"results in {out}")
@@ -368,9 +380,11 @@ def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentPa
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .transfer import WEIGHTINGS
-    from .simulation import MAX_DEPTH, MAX_POINTS, MAX_RUNS
-    from .validation import MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA
+    from .choices import Weighting
+    from .config import EstimatorConfig, NoiseConfig
+    from .simulation import MAX_DEPTH, SimulationConfig
+
+    weightings = [w.value for w in Weighting]
 
     parser = argparse.ArgumentParser(
         prog="covo",
@@ -390,14 +404,15 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run visual odometry on a TUM RGB-D sequence folder (rgb.txt, depth.txt, rgb/, depth/, "
         "optional groundtruth.txt) or a ROS bag (ROS 1 .bag file or ROS 2 bag folder; ground truth from /tf) "
         "and write trajectory.txt (TUM format), relative.txt (relative poses with 6x6 covariances), graph.g2o "
-        "(pose graph), metrics.json and plots/ into OUT.",
+        "(pose graph), metrics.json, config.toml (the configuration used; --config OUT/config.toml repeats the run) "
+        "and plots/ into OUT.",
     )
     _sequence_arguments(run, "TUM RGB-D sequence folder, ROS 1 .bag file or ROS 2 bag folder", bags=True)
     run.add_argument("--max-frames", type=_int_in(1), metavar="N",
                      help="process only the first N frames (default: all)")
     run.add_argument("--config", metavar="FILE", help="TOML or JSON settings (see README: configuration)")
-    run.add_argument("--weighting", choices=WEIGHTINGS, help="residual weighting (default: consistent)")
-    run.add_argument("--scale", type=_float_in(maximum=MAX_SCALE), metavar="PHI",
+    run.add_argument("--weighting", choices=weightings, help="residual weighting (default: consistent)")
+    run.add_argument("--scale", type=_setting(EstimatorConfig, "scale"), metavar="PHI",
                      help="the thesis's covariance scale phi: multiplies each pair's point-transfer "
                      "covariance inside the estimator; the calibrated sensor terms are applied after (default 1)")
     run.add_argument("--bag-out", choices=["ros1", "ros2"],
@@ -413,16 +428,17 @@ def build_parser() -> argparse.ArgumentParser:
         "[0.6 0.6 0.05 | -0.183 -0.183 0 0.966], pixel noise and Kinect depth noise. Writes metrics.json "
         "(ANEES, predicted vs empirical sigmas) and plots/ into OUT.",
     )
-    sim.add_argument("--runs", type=_int_in(1, MAX_RUNS), default=1000, metavar="N",
+    sim.add_argument("--runs", type=_setting(SimulationConfig, "runs"), default=1000, metavar="N",
                      help="Monte Carlo runs (default 1000)")
-    sim.add_argument("--seed", type=_int_in(0), default=0, metavar="S", help="random seed, >= 0 (default 0)")
-    sim.add_argument("--weighting", choices=WEIGHTINGS, default="consistent",
+    sim.add_argument("--seed", type=_setting(SimulationConfig, "seed"), default=0, metavar="S",
+                     help="random seed, >= 0 (default 0)")
+    sim.add_argument("--weighting", choices=weightings, default="consistent",
                      help="residual weighting (default: consistent)")
-    sim.add_argument("--scale", type=_float_in(maximum=MAX_SCALE), default=1.0, metavar="PHI",
+    sim.add_argument("--scale", type=_setting(SimulationConfig, "scale"), default=1.0, metavar="PHI",
                      help="covariance scale phi (thesis: 16; default 1)")
-    sim.add_argument("--pixel-sigma", type=_float_in(MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA), default=8.0, metavar="PX",
+    sim.add_argument("--pixel-sigma", type=_setting(SimulationConfig, "pixel_sigma"), default=8.0, metavar="PX",
                      help="pixel noise standard deviation in pixels (default 8)")
-    sim.add_argument("--points", type=_int_in(3, MAX_POINTS), default=500, metavar="N",
+    sim.add_argument("--points", type=_setting(SimulationConfig, "num_points"), default=500, metavar="N",
                      help="points per run (default 500)")
     sim.add_argument("--min-depth", type=_float_in(maximum=MAX_DEPTH), default=0.5, metavar="M",
                      help="nearest depth (default 0.5 m)")
@@ -458,7 +474,7 @@ def build_parser() -> argparse.ArgumentParser:
     _sequence_arguments(noise, "TUM RGB-D sequence folder with groundtruth.txt")
     noise.add_argument("--max-frames", type=_int_in(2), metavar="N",
                        help="only the first N frames (at least 2; default: all)")
-    noise.add_argument("--pixel-sigma", type=_float_in(MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA), default=2.0,
+    noise.add_argument("--pixel-sigma", type=_setting(NoiseConfig, "pixel_sigma"), default=2.0,
                        metavar="PX",
                        help="pixel noise used by the outlier gate (default 2)")
     _output_arguments(noise)

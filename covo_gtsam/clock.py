@@ -13,6 +13,8 @@ each new stamp's offset ``r = t - (t_0 + P k)`` from that fit, causally, as fram
 that do not follow a regular clock (scattering by more than 15 % of the period, or off it by more
 than a quarter period) get no offset, and neither do the first 20 frames of a run: their stamps
 keep their full jitter (the ``stamp_jitter`` term of the covariance).
+
+:func:`check_stamp` and :func:`check_depth_offset` check the stamps a caller passes.
 """
 
 from __future__ import annotations
@@ -21,6 +23,39 @@ from collections import deque
 
 import gtsam
 import numpy as np
+
+from .errors import InputError
+
+
+def seconds(value, what: str = "timestamp") -> float:
+    """``value`` as float seconds; InputError naming ``what`` for anything but a real number."""
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise InputError(f"{what} must be a number (seconds), got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be a number (seconds), got {value!r}") from None
+
+
+def check_depth_offset(offset) -> float:
+    """``offset`` (depth minus colour time, s) as float; InputError unless finite and at most 1 s."""
+    d = seconds(offset, "depth time offset")
+    if not (np.isfinite(d) and abs(d) <= 1.0):
+        raise InputError(f"the depth image is {d!r} s from its colour image; at most 1 s is usable")
+    return d
+
+
+def check_stamp(timestamp, previous: float | None = None) -> float:
+    """``timestamp`` as float seconds; InputError unless finite and not earlier than ``previous``
+    (the previous frame's stamp, None for the first frame)."""
+    t = seconds(timestamp)
+    if not np.isfinite(t):
+        raise InputError(f"timestamp must be finite, got {t!r}")
+    if previous is not None and t < previous:
+        raise InputError(
+            f"timestamp {t!r} is earlier than the previous frame's {previous!r}; "
+            "frames must be registered in time order")
+    return t
 
 
 class FrameClock:

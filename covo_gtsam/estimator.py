@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from .chi2 import SQRT_CHI2_3_95
 from .covariance import tangent_to_tq
 from .errors import (
     CovarianceError,
@@ -141,7 +142,7 @@ def initial_guess(X_k: np.ndarray, X_k1: np.ndarray, Q_k: np.ndarray, Q_k1: np.n
 
 ROBUST_KERNELS = (None, "huber", "cauchy")
 #: Default robust threshold: sqrt of the chi2(3) 95 % quantile, in Mahalanobis distance.
-ROBUST_K = 2.7955
+ROBUST_K = SQRT_CHI2_3_95
 
 
 def robust_weights(d: np.ndarray, kernel: str, k: float = ROBUST_K) -> np.ndarray:

@@ -1,16 +1,25 @@
-"""Metrics of an odometry run against the sequence's ground truth (a dict ready for JSON)."""
+"""Metrics of an odometry run against the sequence's ground truth.
+
+:func:`evaluate_run` returns one :class:`RunEvaluation`: the statistics written to ``metrics.json``
+(:meth:`RunEvaluation.to_dict`) together with the per-pair errors they summarise, which the
+figures (:func:`covo_gtsam.plots.plot_run`) draw, so the two cannot disagree.
+"""
 
 from __future__ import annotations
 
+import copy
 import math
+from dataclasses import dataclass, field
+from functools import partial
 from typing import Sequence
 
 import numpy as np
 
+from .chi2 import CHI2_3_975
 from .datasets.tum import MAX_GT_COORDINATE
 from .errors import InputError
 from .geometry import invert_pose
-from .metrics import ate_errors, ate_statistics, chi2_quantile, relative_pose_errors, relative_pose_nees, rpe_statistics
+from .metrics import ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .odometry import OdometryStep
 
 #: RPE intervals (frames) reported by ``covo run``.
@@ -19,8 +28,12 @@ RPE_DELTAS = (1, 30)
 
 def consistency_metrics(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> dict:
     """ANEES of rotation and translation (3 dof each) and the share of NEES above chi2(3) 97.5 %."""
-    nees_rot, nees_tr = relative_pose_nees(T_est, T_true, covs)
-    upper = chi2_quantile(0.975, 3)
+    return consistency_statistics(*relative_pose_nees(T_est, T_true, covs))
+
+
+def consistency_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray) -> dict:
+    """The :func:`consistency_metrics` dictionary of rotational and translational NEES values (N,)."""
+    upper = CHI2_3_975
     return {
         "anees_translation": float(np.mean(nees_tr)),
         "anees_rotation": float(np.mean(nees_rot)),
@@ -90,53 +103,149 @@ def _unassociated(steps: Sequence[OdometryStep], seq) -> list[dict]:
             for t, name in listed if t <= last]
 
 
-def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float) -> dict:
-    """Frames, lost frames, speed and, with ground truth, RPE/ATE/ANEES of an odometry run.
+@dataclass
+class RunEvaluation:
+    """What :func:`evaluate_run` measured of an odometry run: the statistics of ``metrics.json``
+    (:meth:`to_dict`) and the arrays behind them, for figures and further analysis.
 
-    With ground truth, a metric that cannot be computed (too few frames with ground truth, values
-    beyond double precision) is None and ``not_computed[name]`` gives the reason (``"anees"`` for
-    the consistency keys); the values are never NaN or inf."""
+    Without ground truth only the frame counts, lost frames, timing and flagged pairs are filled
+    in (``has_ground_truth`` False). With it, a statistic that cannot be computed is None and
+    ``not_computed[name]`` says why (``"rpe_<delta>"``, ``"ate"``, ``"anees"``); its array is then
+    empty, or holds the values that made it fail (not finite).
+    """
+
+    sequence: str
+    frames: int
+    #: ``{"timestamp", "reason"}`` of each lost frame, and of each restart
+    lost: list[dict]
+    restarts: list[dict]
+    #: colour frames without a depth image inside the processed span (:func:`_unassociated`)
+    unassociated: list[dict]
+    elapsed_s: float
+    #: mean number of point pairs of the tracked frame pairs
+    mean_pairs: float
+    #: ``{"timestamp", "ref_timestamp", "quality"}`` of each pair the integrity check flagged
+    flagged: list[dict]
+    has_ground_truth: bool = False
+    #: trajectory segments (a restart starts a new one) with ground truth
+    segments: int = 0
+    #: RPE statistics (:func:`~covo_gtsam.metrics.rpe_statistics`) per interval in frames
+    rpe: dict[int, dict | None] = field(default_factory=dict)
+    #: ATE statistics (:func:`~covo_gtsam.metrics.ate_statistics`), segments aligned one by one
+    ate: dict | None = None
+    #: :func:`consistency_statistics` of the tracked pairs' relative poses
+    consistency: dict | None = None
+    not_computed: dict[str, str] = field(default_factory=dict)
+    #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
+    #: :func:`~covo_gtsam.pipeline.run_sequence`
+    self_calibration: dict | None = None
+    #: the covo-gtsam version that made the run, set by the pipeline
+    version: str | None = None
+    #: translational (m) and rotational (rad) RPE of each frame pair, per interval in frames
+    rpe_errors: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
+    #: position error (m) of each aligned frame, segments pooled
+    ate_errors: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
+    #: NEES of the rotation and of the translation (3 dof each) of each tracked pair
+    nees_rotation: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
+    nees_translation: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
+    #: frame timestamp -> ground-truth pose T_world,cam (:func:`ground_truth_lookup`)
+    ground_truth: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
+
+    @property
+    def lost_frames(self) -> int:
+        return len(self.lost)
+
+    @property
+    def tracked_frames(self) -> int:
+        return self.frames - len(self.lost)
+
+    @property
+    def frames_per_second(self) -> float | None:
+        return float(self.frames / self.elapsed_s) if self.elapsed_s > 0 else None
+
+    def to_dict(self) -> dict:
+        """The ``metrics.json`` dictionary (a copy): the counts and timing, then with ground truth
+        ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate`` and the :data:`CONSISTENCY_KEYS`,
+        then ``self_calibration`` and ``version`` when they are set."""
+        out: dict = {
+            "sequence": self.sequence,
+            "frames": self.frames,
+            "tracked_frames": self.tracked_frames,
+            "lost_frames": self.lost_frames,
+            "lost": self.lost,
+            "restarts": self.restarts,
+            "unassociated": self.unassociated,
+            "elapsed_s": self.elapsed_s,
+            "frames_per_second": self.frames_per_second,
+            "mean_pairs": self.mean_pairs,
+            "flagged_pairs": len(self.flagged),
+            "flagged": self.flagged,
+        }
+        if self.has_ground_truth:
+            out["not_computed"] = self.not_computed
+            out["segments"] = self.segments
+            out.update({f"rpe_{delta}": stats for delta, stats in self.rpe.items()})
+            out["ate"] = self.ate
+            out.update(self.consistency or dict.fromkeys(CONSISTENCY_KEYS))
+        if self.self_calibration is not None:
+            out["self_calibration"] = self.self_calibration
+        if self.version is not None:
+            out["version"] = self.version
+        return copy.deepcopy(out)
+
+
+def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
+                 rpe_deltas: Sequence[int] = RPE_DELTAS) -> RunEvaluation:
+    """Frames, lost frames, speed and, with ground truth, RPE (over each of ``rpe_deltas``
+    frames), ATE and ANEES of an odometry run; see :class:`RunEvaluation`.
+
+    The statistics are never NaN or inf: one that cannot be computed (too few frames with ground
+    truth, values beyond double precision) is None, with the reason in ``not_computed``."""
     lost = [s for s in steps if not s.tracked]
-    metrics: dict = {
-        "sequence": getattr(seq, "name", ""),
-        "frames": len(steps),
-        "tracked_frames": len(steps) - len(lost),
-        "lost_frames": len(lost),
-        "lost": [{"timestamp": s.timestamp, "reason": s.reason} for s in lost],
-        "restarts": [{"timestamp": s.timestamp, "reason": s.reason} for s in steps if s.status == "restart"],
-        "unassociated": _unassociated(steps, seq),
-        "elapsed_s": float(elapsed_s),
-        "frames_per_second": float(len(steps) / elapsed_s) if elapsed_s > 0 else None,
-        "mean_pairs": float(np.mean([s.num_pairs for s in steps if s.status == "tracked"] or [0])),
-        "flagged_pairs": sum(1 for s in steps if s.status == "tracked" and s.flagged),
-        "flagged": [{"timestamp": s.timestamp, "ref_timestamp": s.ref_timestamp, "quality": s.quality}
-                    for s in steps if s.status == "tracked" and s.flagged],
-    }
+    tracked_pairs = [s for s in steps if s.status == "tracked"]
+    ev = RunEvaluation(
+        sequence=getattr(seq, "name", ""),
+        frames=len(steps),
+        lost=[{"timestamp": s.timestamp, "reason": s.reason} for s in lost],
+        restarts=[{"timestamp": s.timestamp, "reason": s.reason} for s in steps if s.status == "restart"],
+        unassociated=_unassociated(steps, seq),
+        elapsed_s=float(elapsed_s),
+        mean_pairs=float(np.mean([s.num_pairs for s in tracked_pairs] or [0])),
+        flagged=[{"timestamp": s.timestamp, "ref_timestamp": s.ref_timestamp, "quality": s.quality}
+                 for s in tracked_pairs if s.flagged],
+    )
     if getattr(seq, "groundtruth", None) is None:
-        return metrics
-    # a metric that cannot be computed is None, and "not_computed" says why
-    not_computed: dict[str, str] = {}
-    metrics["not_computed"] = not_computed
-    gt = ground_truth_lookup(seq)
+        return ev
+    ev.has_ground_truth = True
+    gt = ev.ground_truth = ground_truth_lookup(seq)
     segments = tracked_segments(steps, gt)
-    metrics["segments"] = len(segments)
+    ev.segments = len(segments)
     no_gt = ("no tracked frame has usable ground truth (inside its time span, positions within "
              f"{MAX_GT_COORDINATE:g} m)") if not segments else None
-    for delta in RPE_DELTAS:
-        tr, rot = segment_rpe_errors(segments, delta)
-        metrics[f"rpe_{delta}"] = _computed(
-            not_computed, f"rpe_{delta}", lambda: rpe_statistics(tr, rot, delta), no_gt or (
+    for delta in rpe_deltas:
+        tr, rot = ev.rpe_errors[delta] = segment_rpe_errors(segments, delta)
+        ev.rpe[delta] = _computed(
+            ev.not_computed, f"rpe_{delta}", partial(rpe_statistics, tr, rot, delta), no_gt or (
                 None if tr.size else f"no two tracked frames {delta} apart with ground truth inside one segment"))
+
     # each segment is aligned on its own (segments are not connected); errors pooled
     ate_parts = [G_P for G_P in segments if len(G_P[0]) >= 3]
-    metrics["ate"] = _computed(
-        not_computed, "ate", lambda: ate_statistics(np.concatenate([ate_errors(G, P)[0] for G, P in ate_parts])),
-        no_gt or (None if ate_parts else "no segment has 3 tracked frames with ground truth"))
+
+    def ate():
+        ev.ate_errors = np.concatenate([ate_errors(G, P)[0] for G, P in ate_parts])
+        return ate_statistics(ev.ate_errors)
+
+    ev.ate = _computed(ev.not_computed, "ate", ate,
+                       no_gt or (None if ate_parts else "no segment has 3 tracked frames with ground truth"))
     T_est, T_true, covs = relative_ground_truth(steps, gt)
-    consistency = _computed(not_computed, "anees", lambda: consistency_metrics(T_est, T_true, covs),
-                            None if len(T_est) else "no tracked frame pair has ground truth at both frames")
-    metrics.update(consistency or dict.fromkeys(CONSISTENCY_KEYS))
-    return metrics
+
+    def consistency():
+        ev.nees_rotation, ev.nees_translation = relative_pose_nees(T_est, T_true, covs)
+        return consistency_statistics(ev.nees_rotation, ev.nees_translation)
+
+    ev.consistency = _computed(ev.not_computed, "anees", consistency,
+                               None if len(T_est) else "no tracked frame pair has ground truth at both frames")
+    return ev
 
 
 #: Keys of :func:`consistency_metrics` (None when it cannot be computed).

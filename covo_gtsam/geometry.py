@@ -30,50 +30,57 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices from unit quaternions ``(qx, qy, qz, qw)``; (..., 4) -> (..., 3, 3).
+    """Rotation matrices from quaternions ``(qx, qy, qz, qw)``; (..., 4) -> (..., 3, 3).
 
-    The quaternion is normalised first.
+    The quaternion is normalised first (``gtsam.Rot3.Quaternion`` takes it as it is), then
+    converted by ``gtsam.Rot3.Quaternion(qw, qx, qy, qz)``.
     """
+    import gtsam
+
     q = np.asarray(q, dtype=float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(q.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    out[..., 0, 1] = 2 * (x * y - z * w)
-    out[..., 0, 2] = 2 * (x * z + y * w)
-    out[..., 1, 0] = 2 * (x * y + z * w)
-    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    out[..., 1, 2] = 2 * (y * z - x * w)
-    out[..., 2, 0] = 2 * (x * z - y * w)
-    out[..., 2, 1] = 2 * (y * z + x * w)
-    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return out
+    wxyz = q.reshape(-1, 4)[:, [3, 0, 1, 2]].tolist()
+    return np.array([gtsam.Rot3.Quaternion(*c).matrix() for c in wxyz]).reshape(q.shape[:-1] + (3, 3))
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternions ``(qx, qy, qz, qw)`` with ``qw >= 0`` from rotation matrices.
 
-    (..., 3, 3) -> (..., 4). Uses the numerically stable branch per element.
+    (..., 3, 3) -> (..., 4). Shepperd's method: the branch of the largest of ``qw``, ``qx``,
+    ``qy``, ``qz`` per element (``tests/test_geometry.py`` checks it against
+    ``gtsam.Rot3.toQuaternion``, which agrees to a few ulp, and evo's reader).
     """
     R = np.asarray(R, dtype=float)
     shape = R.shape[:-2]
-    R = R.reshape(-1, 3, 3)
-    q = np.empty((R.shape[0], 4))
-    tr = np.trace(R, axis1=1, axis2=2)
-    for i in range(R.shape[0]):
-        m = R[i]
-        if tr[i] > 0:
-            s = 2.0 * np.sqrt(1.0 + tr[i])
-            q[i] = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-            q[i] = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-        elif m[1, 1] > m[2, 2]:
-            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-            q[i] = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-        else:
-            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-            q[i] = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    m = R.reshape(-1, 3, 3)
+    q = np.empty((m.shape[0], 4))
+    tr = np.trace(m, axis1=1, axis2=2)
+    m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    by_w = tr > 0
+    by_x = ~by_w & (m00 > m11) & (m00 > m22)
+    by_y = ~by_w & ~by_x & (m11 > m22)
+    by_z = ~(by_w | by_x | by_y)
+    # each branch: s = 4 * |its component|, the other components from sums and differences
+    if by_w.any():
+        a = m[by_w]
+        s = 2.0 * np.sqrt(1.0 + tr[by_w])
+        q[by_w] = np.stack([(a[:, 2, 1] - a[:, 1, 2]) / s, (a[:, 0, 2] - a[:, 2, 0]) / s,
+                            (a[:, 1, 0] - a[:, 0, 1]) / s, 0.25 * s], axis=1)
+    if by_x.any():
+        a = m[by_x]
+        s = 2.0 * np.sqrt(1.0 + a[:, 0, 0] - a[:, 1, 1] - a[:, 2, 2])
+        q[by_x] = np.stack([0.25 * s, (a[:, 0, 1] + a[:, 1, 0]) / s, (a[:, 0, 2] + a[:, 2, 0]) / s,
+                            (a[:, 2, 1] - a[:, 1, 2]) / s], axis=1)
+    if by_y.any():
+        a = m[by_y]
+        s = 2.0 * np.sqrt(1.0 + a[:, 1, 1] - a[:, 0, 0] - a[:, 2, 2])
+        q[by_y] = np.stack([(a[:, 0, 1] + a[:, 1, 0]) / s, 0.25 * s, (a[:, 1, 2] + a[:, 2, 1]) / s,
+                            (a[:, 0, 2] - a[:, 2, 0]) / s], axis=1)
+    if by_z.any():
+        a = m[by_z]
+        s = 2.0 * np.sqrt(1.0 + a[:, 2, 2] - a[:, 0, 0] - a[:, 1, 1])
+        q[by_z] = np.stack([(a[:, 0, 2] + a[:, 2, 0]) / s, (a[:, 1, 2] + a[:, 2, 1]) / s, 0.25 * s,
+                            (a[:, 1, 0] - a[:, 0, 1]) / s], axis=1)
     q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return q.reshape(shape + (4,))
@@ -118,10 +125,20 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
 
 
 def rigid_fit(A: np.ndarray, B: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least-squares rigid transform with ``A ≈ R B + t`` (Kabsch / Umeyama, no scale).
+    """Weighted least-squares rigid transform with ``A ≈ R B + t``: :func:`similarity_fit`
+    without scale. Returns ``R`` (..., 3, 3) with det +1 and ``t`` (..., 3)."""
+    R, t, _ = similarity_fit(A, B, weights, with_scale=False)
+    return R, t
 
-    Works on one problem, A and B of shape (N, 3), or on a batch, (H, N, 3) each (e.g. RANSAC
-    hypotheses). Returns ``R`` (..., 3, 3) with det +1 and ``t`` (..., 3).
+
+def similarity_fit(
+    A: np.ndarray, B: np.ndarray, weights: np.ndarray | None = None, with_scale: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | float]:
+    """Weighted least-squares ``(R, t, s)`` with ``A ≈ s R B + t`` (Kabsch; Umeyama 1991 for the scale).
+
+    The package's one point-set alignment: the RANSAC hypotheses, the initial guess and the ATE.
+    Works on one problem, A and B of shape (N, 3), or on a batch, (H, N, 3) each. ``R`` is a
+    proper rotation (det +1, never a reflection); ``s`` is 1.0 unless ``with_scale``.
     """
     A = np.asarray(A, dtype=float)
     B = np.asarray(B, dtype=float)
@@ -133,15 +150,21 @@ def rigid_fit(A: np.ndarray, B: np.ndarray, weights: np.ndarray | None = None) -
     ca = np.einsum("...n,...ni->...i", w, A)
     cb = np.einsum("...n,...ni->...i", w, B)
     H = np.einsum("...n,...ni,...nj->...ij", w, B - cb[..., None, :], A - ca[..., None, :])
-    U, _, Vt = np.linalg.svd(H)
+    U, D, Vt = np.linalg.svd(H)
     d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
-    D = np.zeros(H.shape)
-    D[..., 0, 0] = 1.0
-    D[..., 1, 1] = 1.0
-    D[..., 2, 2] = np.where(d == 0, 1.0, d)
-    R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    d = np.where(d == 0, 1.0, d)
+    S = np.zeros(H.shape)
+    S[..., 0, 0] = 1.0
+    S[..., 1, 1] = 1.0
+    S[..., 2, 2] = d
+    R = np.swapaxes(Vt, -1, -2) @ S @ np.swapaxes(U, -1, -2)
+    if with_scale:  # trace(D S) / weighted variance of B
+        var_b = np.einsum("...n,...n->...", w, np.sum((B - cb[..., None, :]) ** 2, axis=-1))
+        s = (D[..., 0] + D[..., 1] + d * D[..., 2]) / var_b
+        t = ca - s[..., None] * np.einsum("...ij,...j->...i", R, cb)
+        return R, t, (float(s) if np.ndim(s) == 0 else s)
     t = ca - np.einsum("...ij,...j->...i", R, cb)
-    return R, t
+    return R, t, 1.0
 
 
 def image_velocities(X: np.ndarray, twist: np.ndarray, fx: float, fy: float) -> np.ndarray:

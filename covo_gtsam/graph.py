@@ -3,21 +3,22 @@
 Pose graph
 ----------
 :func:`between_factors` turns the steps of a :class:`covo_gtsam.odometry.VisualOdometry` run
-(``vo.steps`` or ``RunResult.steps``) into one ``gtsam.BetweenFactorPose3`` per tracked frame
+(``RunResult.steps``, or the steps a caller keeps from ``register_frame``, e.g. in a
+:class:`~covo_gtsam.steps.StepHistory`) into one ``gtsam.BetweenFactorPose3`` per tracked frame
 pair plus initial values::
 
-    factors, initial = between_factors(vo.steps)
+    factors, initial = between_factors(result.steps)
     graph = gtsam.NonlinearFactorGraph()
     for f in factors:
         graph.add(f)
     graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(), prior_noise))
 
 Keys: every step that has a pose (status ``"first"``, ``"tracked"`` or ``"restart"``) gets the key
-``gtsam.symbol(prefix, i)`` where ``i`` is its position in ``steps``. For ``vo.steps`` and
-``RunResult.steps`` -- one step per frame, lost frames included -- ``i`` is therefore the frame
-index in the sequence, so keys stay tied to frames and lost frames simply have no key (gaps in
-``i``). A custom ``key(i)`` may replace the symbol, or ``key(timestamp)`` with
-``key_by="timestamp"``.
+``gtsam.symbol(prefix, i)`` where ``i`` is its position in ``steps``. For a
+:class:`~covo_gtsam.steps.StepHistory` and ``RunResult.steps`` -- one step per frame, lost frames
+included -- ``i`` is therefore the frame index in the sequence, so keys stay tied to frames and
+lost frames simply have no key (gaps in ``i``). A custom ``key(i)`` may replace the symbol, or
+``key(timestamp)`` with ``key_by="timestamp"``.
 
 Factors: for each ``"tracked"`` step, ``BetweenFactorPose3(key(ref), key(cur), T_ref,cur,
 noise)`` where ``ref`` is the step whose timestamp is ``step.ref_timestamp``. GTSAM's
@@ -63,8 +64,8 @@ import numpy as np
 
 from .covariance import check_covariance, check_matrix, ros_to_tangent, tangent_to_ros
 from .errors import InputError
-from .geometry import matrix_to_quat
-from .odometry import POSED_STATUSES
+from .geometry import matrix_to_quat, quat_to_matrix
+from .steps import POSED_STATUSES
 
 
 NoiseSpec = Any  # gtsam noise model, 6x6 covariance, or callable(step) -> one of those
@@ -114,7 +115,8 @@ def between_factors(
     """Between factors of the tracked steps and the composed absolute poses as initial values.
 
     Args:
-        steps: :class:`~covo_gtsam.odometry.OdometryStep` sequence in time order (``vo.steps``).
+        steps: :class:`~covo_gtsam.steps.OdometryStep` sequence in time order (``RunResult.steps``,
+            a :class:`~covo_gtsam.steps.StepHistory`).
         key: optional ``key(i)`` (or ``key(timestamp)``, see ``key_by``) -> GTSAM key.
         prefix: symbol character of the default keys ``gtsam.symbol(prefix, i)``.
         key_by: ``"index"`` (position in ``steps``) or ``"timestamp"``: what ``key`` receives.
@@ -241,7 +243,6 @@ def from_pose_with_covariance(d: dict) -> tuple[gtsam.Pose3, np.ndarray]:
     nq = np.linalg.norm(q)
     if not (np.isfinite(nq) and nq > 0):
         raise InputError(f"orientation quaternion {q.tolist()} is not a valid rotation")
-    qx, qy, qz, qw = q / nq
-    T = gtsam.Pose3(gtsam.Rot3.Quaternion(qw, qx, qy, qz), p)
+    T = gtsam.Pose3(gtsam.Rot3(quat_to_matrix(q)), p)
     cov = ros_to_tangent(c, T)
     return T, 0.5 * (cov + cov.T)

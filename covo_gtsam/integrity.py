@@ -27,12 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .chi2 import CHI2_6_MEDIAN
 from .geometry import skew
 
 #: Degrees of freedom of the integrity statistic.
 INTEGRITY_DOF = 6
-#: Median of chi2(6).
-CHI2_6_MEDIAN = 5.3481
 
 
 @dataclass(frozen=True)

@@ -1,17 +1,18 @@
-"""Trajectory and consistency metrics: RPE, ATE, NEES, chi-square helpers (pure numpy functions).
+"""Trajectory and consistency metrics: RPE, ATE, NEES (pure numpy functions).
 
 Poses are 4x4 matrices T_world,cam (translations in m). Rotational errors are in radians unless a
-name says deg. Tangent vectors follow GTSAM: ``xi = [omega, v]`` with ``T' = T * Exp(xi)``.
+name says deg. Tangent vectors follow GTSAM: ``xi = [omega, v]`` with ``T' = T * Exp(xi)``. The
+chi-square helpers (``chi2_cdf``, ``chi2_pdf``, ``chi2_quantile``) live in :mod:`covo_gtsam.chi2`
+and are importable from here too.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from .chi2 import chi2_cdf, chi2_pdf, chi2_quantile
 from .errors import InputError
-from .geometry import invert_pose, rotation_angle, skew
+from .geometry import invert_pose, rotation_angle, similarity_fit, skew
 
 __all__ = [
     "anees",
@@ -85,7 +86,8 @@ def rpe_statistics(trans_err: np.ndarray, rot_err: np.ndarray, delta: int) -> di
 def umeyama_alignment(
     src: np.ndarray, dst: np.ndarray, with_scale: bool = False
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, s)`` minimising ``sum ||dst_i - (s R src_i + t)||^2`` over points (N, 3) (Umeyama 1991).
+    """``(R, t, s)`` minimising ``sum ||dst_i - (s R src_i + t)||^2`` over points (N, 3) (Umeyama 1991),
+    by :func:`covo_gtsam.geometry.similarity_fit`.
 
     ``R`` is a proper rotation (det +1); ``s`` is 1.0 unless ``with_scale``.
     """
@@ -93,17 +95,7 @@ def umeyama_alignment(
     dst = np.asarray(dst, dtype=float)
     if src.ndim != 2 or src.shape[1] != 3 or src.shape != dst.shape or src.shape[0] < 2:
         raise InputError(f"need two point arrays of the same shape (N>=2, 3), got {src.shape} and {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / src.shape[0]
-    U, D, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    s = float(np.sum(D * np.diag(S)) / np.mean(np.sum(xs**2, axis=1))) if with_scale else 1.0
-    t = mu_d - s * R @ mu_s
-    return R, t, s
+    return similarity_fit(dst, src, with_scale=with_scale)
 
 
 def ate(poses_gt: np.ndarray, poses_est: np.ndarray, with_scale: bool = False) -> dict:
@@ -207,105 +199,3 @@ def relative_pose_nees(T_est: np.ndarray, T_true: np.ndarray, cov: np.ndarray) -
     if cov.shape != (xi.shape[0], 6, 6):
         raise InputError(f"need covariances ({xi.shape[0]}, 6, 6), got {cov.shape}")
     return nees(xi[:, :3], cov[:, :3, :3]), nees(xi[:, 3:], cov[:, 3:, 3:])
-
-
-# ---- chi-square distribution without scipy ----------------------------------------------------
-
-
-def _gamma_pq(a: float, x: float) -> tuple[float, float]:
-    """Regularised incomplete gamma ``(P(a, x), Q(a, x) = 1 - P)``, each accurate in its own tail.
-
-    Series for ``x < a + 1``, Lentz continued fraction otherwise (Numerical Recipes 6.2).
-    """
-    if x <= 0.0:
-        return 0.0, 1.0
-    if math.isinf(x):
-        return 1.0, 0.0
-    log_pref = -x + a * math.log(x) - math.lgamma(a)
-    if x < a + 1.0:
-        ap, term, total = a, 1.0 / a, 1.0 / a
-        for _ in range(10000):
-            ap += 1.0
-            term *= x / ap
-            total += term
-            if abs(term) < abs(total) * 1e-16:
-                break
-        p = total * math.exp(log_pref)
-        return p, 1.0 - p
-    tiny = 1e-300
-    b = x + 1.0 - a
-    c = 1.0 / tiny
-    d = 1.0 / b
-    h = d
-    for i in range(1, 10000):
-        an = -i * (i - a)
-        b += 2.0
-        d = an * d + b
-        d = tiny if abs(d) < tiny else d
-        c = b + an / c
-        c = tiny if abs(c) < tiny else c
-        d = 1.0 / d
-        step = d * c
-        h *= step
-        if abs(step - 1.0) < 1e-16:
-            break
-    q = math.exp(log_pref) * h
-    return 1.0 - q, q
-
-
-def _check_dof(dof: float) -> float:
-    dof = float(dof)
-    if not dof > 0 or not math.isfinite(dof):
-        raise InputError(f"degrees of freedom must be > 0, got {dof}")
-    return dof
-
-
-def chi2_cdf(x: float, dof: float) -> float:
-    """Chi-square CDF ``P(dof/2, x/2)`` (scalar)."""
-    return _gamma_pq(_check_dof(dof) / 2.0, float(x) / 2.0)[0]
-
-
-def chi2_quantile(p: float, dof: float) -> float:
-    """Chi-square quantile: ``x`` with ``CDF(x; dof) = p``, for ``0 < p < 1``.
-
-    Bisection on the regularised incomplete gamma (lower tail for p <= 0.5, upper tail above),
-    to ~1e-13 relative; e.g. ``chi2_quantile(0.975, 3) = 9.3484``.
-    """
-    dof = _check_dof(dof)
-    p = float(p)
-    if not 0.0 < p < 1.0:
-        raise InputError(f"p must be in (0, 1), got {p}")
-    a = dof / 2.0
-    upper = p > 0.5
-    target = 1.0 - p if upper else p
-
-    def below(x: float) -> bool:  # True when the quantile is above x
-        P, Q = _gamma_pq(a, x / 2.0)
-        return Q > target if upper else P < target
-
-    lo, hi = 0.0, max(1.0, dof + 10.0 * math.sqrt(2.0 * dof))
-    while below(hi):
-        lo, hi = hi, 2.0 * hi
-    for _ in range(2000):
-        mid = 0.5 * (lo + hi)
-        if mid <= lo or mid >= hi:
-            break
-        if below(mid):
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo <= 1e-14 * hi:
-            break
-    return 0.5 * (lo + hi)
-
-
-def chi2_pdf(x: np.ndarray, dof: float) -> np.ndarray:
-    """Chi-square density at ``x`` (any shape); 0 for x < 0."""
-    dof = _check_dof(dof)
-    x = np.asarray(x, dtype=float)
-    k = dof / 2.0
-    pos = x > 0
-    xs = np.where(pos, x, 1.0)
-    dens = np.exp((k - 1.0) * np.log(xs) - xs / 2.0 - k * math.log(2.0) - math.lgamma(k))
-    at0 = 0.5 if dof == 2 else (np.inf if dof < 2 else 0.0)
-    return np.where(pos, dens, np.where(x == 0, at0, 0.0))

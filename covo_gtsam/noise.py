@@ -51,7 +51,7 @@ class KinectAxialNoise:
 
     ``scale`` multiplies the whole ``sigma_Z`` (1: the published model). On the shared TUM
     frames the depth errors that matter for the pose are larger than the model says, and partly
-    systematic, so :class:`~covo_gtsam.odometry.OdometryConfig` scales it (``depth_sigma_scale``).
+    systematic, so :class:`~covo_gtsam.config.NoiseConfig` scales it (``depth_sigma_scale``).
 
     The model is defined for measured depths ``Z > 0`` only: zero, negative or non-finite depths
     are no measurement (a depth camera reports 0; the front end drops such keypoints) and raise

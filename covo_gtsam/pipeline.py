@@ -12,7 +12,9 @@ Outputs in ``out_dir``:
 * ``odometry.bag`` / ``odometry/`` -- with ``bag_out="ros1"`` / ``"ros2"``, the odometry as ROS
   messages (:mod:`covo_gtsam.ros_io`);
 * ``metrics.json`` -- frames, lost frames, frames/s, and accuracy/consistency metrics when
-  ground truth exists;
+  ground truth exists; ``version``: the package's version;
+* ``config.toml`` -- the configuration of the run (:func:`covo_gtsam.config.save_config`):
+  ``covo run SEQ --config OUT/config.toml`` repeats it;
 * ``plots/`` -- PNG figures (unless disabled).
 
 The sequence returns decoded frames: a :class:`~covo_gtsam.datasets.tum.TumSequence` (image
@@ -37,24 +39,30 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
+from . import __version__
 from .camera import Camera
+from .config import OdometryConfig, save_config
 from .datasets.tum import TumSequence
 from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData
 from .g2o import G2oWriter
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
-from .odometry import OdometryConfig, OdometryStep, VisualOdometry
+from .odometry import OdometryStep, VisualOdometry
+from .steps import StepHistory
 from .validation import check_int
+
+if TYPE_CHECKING:
+    from .evaluation import RunEvaluation
 
 
 #: Frames decoded and prepared ahead on worker threads.
 PREFETCH = 2
 #: Files a run writes into its results folder (besides the figures of ``plots/``).
-RUN_FILES = ("trajectory.txt", "relative.txt", "graph.g2o", "metrics.json")
+RUN_FILES = ("trajectory.txt", "relative.txt", "graph.g2o", "metrics.json", "config.toml")
 
 
 @dataclass
@@ -62,9 +70,11 @@ class RunResult:
     """What :func:`run_sequence` produced (also written to disk)."""
 
     out_dir: Path
+    #: the ``metrics.json`` dictionary (``evaluation.to_dict()``)
     metrics: dict
     steps: list[OdometryStep] = field(repr=False)
-    gt_poses: np.ndarray | None = field(default=None, repr=False)
+    #: the statistics and the errors behind them (:class:`~covo_gtsam.evaluation.RunEvaluation`)
+    evaluation: RunEvaluation | None = field(default=None, repr=False)
     #: figures written; None when plots were asked for but matplotlib is not installed
     plot_files: list[Path] | None = field(default_factory=list)
 
@@ -192,10 +202,11 @@ def run_sequence(
     integer >= 1, or None for all) limits the frames processed; ``bag_out`` (``"ros1"``,
     ``"ros2"`` or None) also writes the odometry as a ROS bag.
 
-    The folder is checked before the first frame (``trajectory.txt``, ``relative.txt``,
-    ``metrics.json`` and, with ``plots``, the figures of ``plots/`` must be writable) and the
-    results of an earlier run of those names are removed, so the folder describes one run; an
-    interrupted run leaves its text files (valid up to the last line) and no ``metrics.json``.
+    The folder is checked before the first frame (the files of :data:`RUN_FILES` and, with
+    ``plots``, the figures of ``plots/`` must be writable) and the results of an earlier run of
+    those names are removed, so the folder describes one run; ``config.toml`` (``config``, which
+    ``--config`` reads back) is written first. An interrupted run leaves its text files (valid up
+    to the last line) and no ``metrics.json``.
     The folder is locked while the run writes into it.
 
     Raises:
@@ -206,19 +217,20 @@ def run_sequence(
         check_int("max_frames", max_frames, 1)
     config = config or OdometryConfig()
     vo = VisualOdometry(seq.camera if camera is None else camera, config)
-    vo.keep_error_bases = keep_error_bases
     out = check_output_dir(out_dir)
     with FolderLock(out):
         from .plots import RUN_PLOTS
 
         prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
+        save_config(config, out / "config.toml", header=f"covo-gtsam {__version__}: the configuration of this run")
         with kernel_threads(1):
-            return _run(vo, seq, out, config, max_frames, plots, progress, bag_out)
+            return _run(vo, StepHistory(keep_error_bases), seq, out, config, max_frames, plots, progress, bag_out)
 
 
-def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig, max_frames: int | None,
-         plots: bool, progress: bool, bag_out: str | None) -> RunResult:
-    """The frame loop and the results of :func:`run_sequence`, in a checked and locked folder."""
+def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, config: OdometryConfig,
+         max_frames: int | None, plots: bool, progress: bool, bag_out: str | None) -> RunResult:
+    """The frame loop and the results of :func:`run_sequence`, in a checked and locked folder; the
+    steps go to ``history``."""
     bag = None
     if bag_out is not None:
         from .ros_io import OdometryBagWriter
@@ -236,7 +248,7 @@ def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig
     index_of: dict[float, int] = {}
     with TrajectoryWriter(out / "trajectory.txt") as traj_w, RelativePoseWriter(out / "relative.txt") as rel_w, \
             G2oWriter(out / "graph.g2o") as g2o_w, ThreadPoolExecutor(max_workers=PREFETCH) as pool:
-        load = _frame_loader(seq, n, config.depth_scale, vo.camera)
+        load = _frame_loader(seq, n, config.sensor.depth_scale, vo.camera)
 
         def submit(i: int):
             stamps = getattr(seq, "depth_timestamps", None)
@@ -251,14 +263,14 @@ def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig
                     pending.append(submit(i + PREFETCH))
                 t = float(seq.timestamps[i])
                 if isinstance(frame, CovoError):
-                    step = vo.mark_lost(t, str(frame))
+                    step = history.add(vo.mark_lost(t, str(frame)))
                 else:
-                    step = vo.register_frame(frame, timestamp=t)
-                if step.tracked:
+                    step = history.add(vo.register_frame(frame, timestamp=t))
+                if step.has_pose:
                     traj_w.write(t, step.pose.matrix())
                     g2o_w.vertex(i, step.pose.matrix())
                     index_of[t] = i
-                    if step.status == "tracked":
+                    if step.has_relative_pose:
                         rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance, step.quality)
                         g2o_w.edge(index_of[step.ref_timestamp], i, step.relative.matrix(), step.covariance)
                     if bag is not None:
@@ -277,15 +289,17 @@ def _run(vo: VisualOdometry, seq: TumSequence, out: Path, config: OdometryConfig
 
     from .evaluation import evaluate_run
 
-    metrics = evaluate_run(vo.steps, seq, elapsed)
-    metrics["self_calibration"] = vo.self_calibration()
+    evaluation = evaluate_run(history.steps, seq, elapsed)
+    evaluation.self_calibration = vo.self_calibration()
+    evaluation.version = __version__
+    metrics = evaluation.to_dict()
     write_json(out / "metrics.json", metrics)
-    result = RunResult(out, metrics, vo.steps)
+    result = RunResult(out, metrics, history.steps, evaluation)
     if plots:
         from .plots import plot_run
 
         try:
-            result.plot_files = plot_run(vo.steps, seq, metrics, out / "plots")
+            result.plot_files = plot_run(history.steps, evaluation, out / "plots")
         except OSError as exc:
             raise DatasetError(f"{out / 'plots'}: cannot write the figures ({exc.strerror or exc}); "
                                "the other results are complete") from exc
@@ -315,8 +329,6 @@ def calibrate_sequence(
         DatasetError: the sequence has no ground truth.
         InputError: fewer than 10 usable pairs.
     """
-    import dataclasses
-
     from .calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS, fit_sensor_terms
     from .evaluation import ground_truth_lookup, relative_ground_truth
     from .metrics import relative_pose_tangent_errors
@@ -324,10 +336,10 @@ def calibrate_sequence(
     if seq.groundtruth is None:
         raise DatasetError(f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
     config = config or OdometryConfig()
-    priors = {k: getattr(config, ERROR_TERMS[k]) for k in PRIOR_TERMS}
+    priors = {k: getattr(config.sensor, ERROR_TERMS[k]) for k in PRIOR_TERMS}
     no_terms = {name: 0.0 for name in ERROR_TERMS.values()}
-    config = dataclasses.replace(config, correlation_factor=1.0, frame_sigma_rot_deg=0.0,
-                                 frame_sigma_trans_m=0.0, keyframes=False, **no_terms)
+    config = config.replace(sensor={"correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0,
+                                    **no_terms}, tracking={"keyframes": False})
     result = run_sequence(seq, out_dir, config=config, max_frames=max_frames, plots=False, progress=progress,
                           keep_error_bases=True)
     lookup = ground_truth_lookup(seq)
@@ -345,8 +357,8 @@ def calibration_pairs(steps, lookup: dict, config: OdometryConfig, require_clock
     """The steps a fit of the sensor terms uses: tracked consecutive pairs (one frame interval) with a
     velocity and ground truth at both frames (``lookup``: stamp -> pose), not flagged by the integrity
     check, with ``require_clock`` both frames placed by the frame clock (when it is on)."""
-    clocked = {s.timestamp for s in steps if s.clock_samples or not config.frame_clock or not require_clock}
-    return [s for s in steps if s.status == "tracked" and s.velocity is not None and not s.flagged
+    clocked = {s.timestamp for s in steps if s.clock_samples or not config.sensor.frame_clock or not require_clock}
+    return [s for s in steps if s.has_relative_pose and s.velocity is not None and not s.flagged
             and s.timestamp in clocked and s.ref_timestamp in clocked
             and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1
             and s.ref_timestamp in lookup and s.timestamp in lookup]

@@ -7,8 +7,8 @@ from typing import Sequence
 
 import numpy as np
 
+from .chi2 import chi2_pdf, chi2_quantile
 from .geometry import invert_pose
-from .metrics import chi2_pdf, chi2_quantile, relative_pose_nees
 
 
 def _plt():
@@ -81,23 +81,24 @@ RUN_PLOTS = ("trajectory.png", "nees.png", "rpe.png")
 SIMULATION_PLOTS = ("nees.png", "errors_bounds.png")
 
 
-def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path] | None:
+def plot_run(steps: Sequence, evaluation, out_dir: Path) -> list[Path] | None:
     """Trajectory with 3-sigma ellipses, NEES histograms and RPE box plots of a run.
 
+    ``evaluation`` is the run's :class:`~covo_gtsam.evaluation.RunEvaluation`: the figures show
+    the errors behind its statistics (``metrics.json``), not a second computation of them.
     Returns the files written (figures that need ground truth are left out without it; older
     ones of the same names are removed), or None when matplotlib is not installed.
     """
     plt = _plt()
     if plt is None:
         return None
-    from .evaluation import RPE_DELTAS, ground_truth_lookup, relative_ground_truth, segment_rpe_errors, tracked_segments
 
     out_dir = Path(out_dir)
     for name in RUN_PLOTS:  # a figure this run cannot make must not survive from an earlier one
         (out_dir / name).unlink(missing_ok=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    gt = ground_truth_lookup(seq)
+    gt = evaluation.ground_truth
     tracked = [s for s in steps if s.tracked]
     if not tracked:
         return written
@@ -120,32 +121,28 @@ def plot_run(steps: Sequence, seq, metrics: dict, out_dir: Path) -> list[Path] |
         plane_axes(ax, i, j, f"trajectory, {names}")
     written.append(save_figure(fig, out_dir / "trajectory.png"))
 
-    T_est, T_true, rel_covs = relative_ground_truth(steps, gt)
-    if len(T_est):
-        nees_rot, nees_tr = relative_pose_nees(T_est, T_true, rel_covs)
+    if evaluation.nees_translation.size:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-        nees_histogram(axes[0], nees_tr, "translation NEES per frame pair")
-        nees_histogram(axes[1], nees_rot, "rotation NEES per frame pair")
+        nees_histogram(axes[0], evaluation.nees_translation, "translation NEES per frame pair")
+        nees_histogram(axes[1], evaluation.nees_rotation, "rotation NEES per frame pair")
         written.append(save_figure(fig, out_dir / "nees.png"))
 
-        segments = tracked_segments(steps, gt)
-        data_t, data_r, labels = [], [], []
-        for delta in RPE_DELTAS:
-            tr, rot = segment_rpe_errors(segments, delta)
-            if tr.size:
-                data_t.append(tr * 100)
-                data_r.append(np.rad2deg(rot))
-                labels.append(f"{delta} frame{'s' if delta > 1 else ''}")
-        if data_t:
-            fig, axes = plt.subplots(1, 2, figsize=(9, 4))
-            boxplot(axes[0], data_t, labels)
-            axes[0].set_ylabel("translational RPE [cm]")
-            boxplot(axes[1], data_r, labels)
-            axes[1].set_ylabel("rotational RPE [deg]")
-            for ax in axes:
-                ax.grid(True, alpha=0.3)
-            fig.suptitle(f"relative pose error, {metrics.get('sequence', '')}")
-            written.append(save_figure(fig, out_dir / "rpe.png"))
+    data_t, data_r, labels = [], [], []
+    for delta, (tr, rot) in evaluation.rpe_errors.items():
+        if tr.size:
+            data_t.append(tr * 100)
+            data_r.append(np.rad2deg(rot))
+            labels.append(f"{delta} frame{'s' if delta > 1 else ''}")
+    if data_t:
+        fig, axes = plt.subplots(1, 2, figsize=(9, 4))
+        boxplot(axes[0], data_t, labels)
+        axes[0].set_ylabel("translational RPE [cm]")
+        boxplot(axes[1], data_r, labels)
+        axes[1].set_ylabel("rotational RPE [deg]")
+        for ax in axes:
+            ax.grid(True, alpha=0.3)
+        fig.suptitle(f"relative pose error, {evaluation.sequence}")
+        written.append(save_figure(fig, out_dir / "rpe.png"))
     return written
 
 

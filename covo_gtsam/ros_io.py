@@ -74,7 +74,7 @@ def _stamp(t: float) -> tuple[int, int]:
 class OdometryBagWriter:
     """Writes ``/covo/odometry`` and ``/covo/relative`` (see the module docstring) message by message.
 
-    ``write(step)`` takes each :class:`~covo_gtsam.odometry.OdometryStep` in order (lost steps are
+    ``write(step)`` takes each :class:`~covo_gtsam.steps.OdometryStep` in order (lost steps are
     skipped); use as a context manager, or call :meth:`close`.
     """
 
@@ -141,7 +141,7 @@ class OdometryBagWriter:
         w = np.zeros(3)
         v = np.zeros(3)
         cov = np.zeros((6, 6))
-        if step.status == "tracked" and step.relative is not None:
+        if step.has_relative_pose and step.relative is not None:
             dt = float(step.timestamp - step.ref_timestamp)
             if dt > 0:
                 xi = gtsam.Pose3.Logmap(step.relative)
@@ -156,7 +156,7 @@ class OdometryBagWriter:
 
     def write(self, step) -> None:
         """Write the messages of one odometry step (nothing for a lost frame)."""
-        if not step.tracked:
+        if not step.has_pose:
             return
         T = self.ts.types
         ns = int(round(float(step.timestamp) * 1e9))
@@ -164,7 +164,7 @@ class OdometryBagWriter:
             header=self._header(step.timestamp, ODOM_FRAME), child_frame_id=self.camera_frame,
             pose=self._pose_with_covariance(step.pose, step.pose_covariance), twist=self._twist(step))
         self._writer.write(self._odom, ns, self._serialize(odom, "nav_msgs/msg/Odometry"))
-        if step.status == "tracked":
+        if step.has_relative_pose:
             rel = T["geometry_msgs/msg/PoseWithCovarianceStamped"](
                 header=self._header(step.timestamp, f"{self.camera_frame}@{step.ref_timestamp:.6f}"),
                 pose=self._pose_with_covariance(step.relative, step.covariance))

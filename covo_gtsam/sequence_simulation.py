@@ -33,7 +33,8 @@ import numpy as np
 from .camera import Camera
 from .frontend import DESCRIPTOR_BYTES, Features, FrameData
 from .metrics import nees, relative_pose_tangent_errors
-from .odometry import OdometryConfig, VisualOdometry
+from .config import OdometryConfig
+from .odometry import VisualOdometry
 from .pipeline import stacked_bases
 
 
@@ -172,7 +173,6 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     descriptors = rng.integers(0, 256, size=(len(Pw), DESCRIPTOR_BYTES), dtype=np.uint8)
     noise = odometry.noise_model()
     vo = VisualOdometry(camera, odometry)
-    vo.keep_error_bases = True
 
     captures = np.arange(cfg.frames) * cfg.period_s
     stamp_offsets = rng.normal(0.0, cfg.stamp_jitter_s, cfg.frames)
@@ -204,7 +204,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     index = {s: k for k, s in enumerate(stamps)}
     errors, covs, flagged, pair_bad, quality, kept = [], [], [], [], [], []
     for st in steps:
-        if st.status != "tracked":
+        if not st.has_relative_pose:
             continue
         i, j = index[st.ref_timestamp], index[st.timestamp]
         T_true = traj.pose(stamps[i]).between(traj.pose(stamps[j])).matrix()
@@ -218,5 +218,5 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         errors=np.array(errors).reshape(-1, 6), covariances=np.array(covs).reshape(-1, 6, 6),
         flagged=np.array(flagged, bool), bad=np.array(pair_bad, bool), quality=np.array(quality),
         true_stamp_offsets=stamp_offsets, clock_offsets=np.array([s.clock_offset for s in steps]),
-        clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.tracked), config=cfg,
+        clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.has_pose), config=cfg,
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool))

@@ -14,6 +14,7 @@ Errors are ``xi = Log(T_est^-1 T_true)`` in GTSAM's tangent ``[omega, v]``; NEES
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import gtsam
 import numpy as np
@@ -23,9 +24,9 @@ from .errors import ConfigError, EstimationError
 from .estimator import estimate_relative_pose
 from .geometry import pose_from_tum
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
-from .transfer import WEIGHTINGS
-from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, check_choice, check_int, check_real,
-                         is_real)
+from .choices import Weighting
+from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, check_real, check_settings, choice, integer,
+                         is_real, number)
 
 #: The thesis's motion, TUM order tx ty tz qx qy qz qw (quaternion normalised on use).
 THESIS_MOTION = (0.6, 0.6, 0.05, -0.183, -0.183, 0.0, 0.966)
@@ -41,35 +42,29 @@ MAX_DEPTH = 100.0
 
 @dataclass(frozen=True)
 class SimulationConfig:
-    """Settings of :func:`run_simulation`; every value is type- and range-checked
-    (:class:`ConfigError` naming the field).
-
-    ``runs`` (1 to :data:`MAX_RUNS`), ``seed`` (integer >= 0), ``num_points`` (3 to
-    :data:`MAX_POINTS`), ``pixel_sigma`` (pixels, ``MIN_PIXEL_SIGMA`` to ``MAX_PIXEL_SIGMA`` of
-    :mod:`covo_gtsam.validation`), ``depth_range`` ``(min, max)`` metres with
-    ``0 < min < max <= MAX_DEPTH``, ``weighting``, ``scale`` (> 0, at most ``MAX_SCALE``),
-    ``motion`` (``tx ty tz qx qy qz qw``), ``camera`` (a preset name) and ``depth_model`` (with a
+    """Settings of :func:`run_simulation`; each scalar field declares its default, unit, range and
+    meaning and is checked on construction (:class:`ConfigError` naming the field), as are
+    ``depth_range`` ``(min, max)`` metres with ``0 < min < max <= MAX_DEPTH``, ``motion``
+    (``tx ty tz qx qy qz qw``), ``camera`` (a preset name) and ``depth_model`` (with a
     ``sigma(z, theta)`` method).
     """
 
-    runs: int = 1000
-    seed: int = 0
-    num_points: int = 500
-    pixel_sigma: float = 8.0
+    section: ClassVar[str] = ""
+
+    runs: int = integer(1000, "Monte Carlo runs", 1, MAX_RUNS, "runs")
+    seed: int = integer(0, "random seed", 0)
+    num_points: int = integer(500, "points per run", 3, MAX_POINTS, "points")
+    pixel_sigma: float = number(8.0, "standard deviation of the pixel noise", "px", minimum=MIN_PIXEL_SIGMA,
+                                maximum=MAX_PIXEL_SIGMA)
     depth_range: tuple[float, float] = (0.5, 5.0)
-    weighting: str = "consistent"
-    scale: float = 1.0
+    weighting: Weighting = choice(Weighting.CONSISTENT, "weighting of the residuals", Weighting)
+    scale: float = number(1.0, "the thesis's covariance scale phi", "factor", maximum=MAX_SCALE)
     motion: tuple[float, ...] = THESIS_MOTION
     camera: str = "fr1"
     depth_model: KinectAxialNoise = field(default_factory=KinectAxialNoise)
 
     def __post_init__(self) -> None:
-        check_int("runs", self.runs, 1, MAX_RUNS)
-        check_int("seed", self.seed, 0)
-        check_int("num_points", self.num_points, 3, MAX_POINTS)
-        check_real("pixel_sigma", self.pixel_sigma, "positive", MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA)
-        check_real("scale", self.scale, "positive", maximum=MAX_SCALE)
-        check_choice("weighting", self.weighting, WEIGHTINGS)
+        check_settings(self, self.section)
         try:
             zmin, zmax = self.depth_range
         except (TypeError, ValueError):
@@ -179,9 +174,8 @@ class SimulationResult:
 
     def summary(self) -> dict:
         """JSON-ready metrics: ANEES, share outside chi^2(3) bounds, predicted vs empirical sigmas."""
-        from .metrics import chi2_quantile
+        from .chi2 import CHI2_3_975 as upper
 
-        upper = chi2_quantile(0.975, 3)
         emp = self.empirical_covariance()
         pred = self.mean_predicted_covariance()
         sig = np.sqrt(np.einsum("nii->ni", self.covariances))

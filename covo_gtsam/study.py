@@ -76,15 +76,13 @@ def run_one(path: str, out_dir: str, camera: str | None = None, config: dict | N
             bag_out: str | None = None) -> dict:
     """``covo run`` of one sequence into ``out_dir``; returns its ``metrics.json`` dict. Plain
     arguments only (it runs on other processes and machines)."""
-    import dataclasses
-
-    from .odometry import OdometryConfig
+    from .config import OdometryConfig
     from .pipeline import run_sequence
 
     seq, scale = _open_sequence(path, camera, topics or {})
     cfg = OdometryConfig.from_dict(config) if config else OdometryConfig()
     if scale is not None:
-        cfg = dataclasses.replace(cfg, depth_scale=scale)
+        cfg = cfg.replace(sensor={"depth_scale": scale})
     result = run_sequence(seq, out_dir, config=cfg, max_frames=max_frames, plots=plots, progress=False,
                           bag_out=bag_out)
     return result.metrics

@@ -221,7 +221,7 @@ def real_part(seq_dir: Path, pair: int, gap: int, runs: int, seed: int) -> dict:
         raise CovoError(f"{seq_dir}: frame {j} does not exist ({len(seq)} frames)")
     config = OdometryConfig()
     vo = VisualOdometry(seq.camera, config)
-    frames = [vo.prepare(*seq.load(i, depth_scale=config.depth_scale)) for i in (pair, j)]
+    frames = [vo.prepare(*seq.load(i, depth_scale=config.sensor.depth_scale)) for i in (pair, j)]
     pairs = associate_frames(frames[0], frames[1], config.frontend)
     n = len(pairs)
     if n < config.frontend.min_pairs:
@@ -230,7 +230,8 @@ def real_part(seq_dir: Path, pair: int, gap: int, runs: int, seed: int) -> dict:
     cam = seq.camera
     meas = []
     for f, idx in ((frames[0], pairs.idx_ref), (frames[1], pairs.idx_cur)):
-        meas.append((f.uv_undistorted[idx], f.depths[idx], f.theta[idx] if config.use_surface_angle else np.zeros(n)))
+        theta = f.theta[idx] if config.noise.use_surface_angle else np.zeros(n)
+        meas.append((f.uv_undistorted[idx], f.depths[idx], theta))
     init = None if pairs.T_init is None else gtsam.Pose3(pairs.T_init)
     gt = None
     if getattr(seq, "groundtruth", None) is not None and seq.gt_valid[pair] and seq.gt_valid[j]:

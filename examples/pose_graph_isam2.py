@@ -4,11 +4,13 @@
     python examples/pose_graph_isam2.py SEQ_DIR [--out DIR] [--max-frames N]
         [--fix-every N] [--fix-sigma M] [--seed S] [--repeat K] [--config FILE] [--no-plots]
 
+The results go to ``--out DIR``; without it, to a new temporary folder (its name is printed).
+
 What it does:
 
 1. Runs :class:`covo_gtsam.odometry.VisualOdometry` over the TUM sequence (through
    :func:`covo_gtsam.pipeline.run_sequence`, which also writes ``OUT/vo/``) with the default
-   :class:`~covo_gtsam.odometry.OdometryConfig` or the settings of ``--config``.
+   :class:`~covo_gtsam.config.OdometryConfig` or the settings of ``--config``.
 2. Builds the same pose graph several times, incrementally with ``gtsam.ISAM2`` (one update per
    frame, new poses initialised from the current estimate of their reference frame composed with
    the odometry):
@@ -57,19 +59,19 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import gtsam
 import numpy as np
 
-from covo_gtsam.cli import load_config_file
+from covo_gtsam.config import OdometryConfig, load_config
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.errors import CovoError
 from covo_gtsam.geometry import invert_pose
 from covo_gtsam.graph import between_factors, step_keys, unit_between_factors
 from covo_gtsam.metrics import ate
-from covo_gtsam.odometry import OdometryConfig
 from covo_gtsam.pipeline import run_sequence
 from covo_gtsam.plots import ellipse_xy, plane_axes, save_figure
 
@@ -178,7 +180,8 @@ def position_nees(poses, marginals, gt_rel, indices) -> np.ndarray:
     return np.array(out)
 
 
-def plot_results(out: Path, variants: dict, gt_rel: dict, vo_poses: dict, fixes: dict, indices: list[int]) -> list[Path]:
+def plot_results(out: Path, variants: dict, gt_rel: dict, vo_poses: dict, fixes: dict,
+                 indices: list[int]) -> list[Path]:
     try:
         import matplotlib
     except ImportError:  # pragma: no cover
@@ -232,7 +235,7 @@ def run(args: argparse.Namespace) -> dict:
     if seq.groundtruth is None:
         raise CovoError(f"{args.seq}: the sequence has no ground truth (groundtruth.txt); fixes need it")
     out = Path(args.out)
-    config = load_config_file(args.config) if args.config else OdometryConfig()
+    config = load_config(args.config) if args.config else OdometryConfig()
     res = run_sequence(seq, out / "vo", config=config, max_frames=args.max_frames, plots=False, progress=False)
     steps = res.steps
     n = len(steps)
@@ -249,7 +252,7 @@ def run(args: argparse.Namespace) -> dict:
     indices = sorted(gt_rel)  # tracked frames with ground truth: the frames evaluated
 
     covo_factors, _ = between_factors(steps)
-    tracked_covs = np.array([s.covariance for s in steps if s.status == "tracked"])
+    tracked_covs = np.array([s.covariance for s in steps if s.has_relative_pose])
     median_cov = median_block_covariance(tracked_covs)
     unit_factors, _ = unit_between_factors(steps, sigma=UNIT_SIGMA)
     median_factors, _ = unit_between_factors(steps, covariance=median_cov)
@@ -337,9 +340,11 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("seq", metavar="SEQ_DIR", help="TUM RGB-D sequence folder with groundtruth.txt")
-    p.add_argument("--out", default="pose_graph_out", metavar="DIR", help="output folder (default ./pose_graph_out)")
+    p.add_argument("--out", metavar="DIR",
+                   help="output folder (default: a new temporary folder, printed at the end)")
     p.add_argument("--config", metavar="FILE", help="odometry settings, TOML or JSON (as for 'covo run --config')")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="use only the first N frames")
     p.add_argument("--fix-every", type=int, default=30, metavar="N", help="a position fix every N frames (default 30)")
@@ -359,6 +364,8 @@ def main(argv: list[str] | None = None) -> int:
         print("error: --fix-every >= 1, --fix-sigma > 0, --repeat >= 1 and --max-frames >= 2 are required",
               file=sys.stderr)
         return 2
+    if args.out is None:
+        args.out = tempfile.mkdtemp(prefix="covo-pose-graph-")
     try:
         summary = run(args)
     except CovoError as exc:
@@ -377,6 +384,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['unit']['mean']:.4f} | median {r['median']['mean']:.4f}; covo best in "
               f"{summary['repeat_share_covo_best'] * 100:.0f} %, below unit in "
               f"{summary['repeat_share_covo_below_unit'] * 100:.0f} % of the seeds")
+    print(f"results in {args.out}")
     print(json.dumps(summary, default=str))
     return 0
 

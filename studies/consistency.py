@@ -19,9 +19,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from covo_gtsam.calibration import ERROR_TERMS  # noqa: E402
+from covo_gtsam.chi2 import CHI2_3_975  # noqa: E402
+from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
-from covo_gtsam.odometry import OdometryConfig  # noqa: E402
 from covo_gtsam.pipeline import run_sequence  # noqa: E402
 from covo_gtsam.simulation import SimulationConfig, run_simulation  # noqa: E402
 
@@ -31,27 +32,40 @@ SIM_VARIANTS = {
     "thesis, phi = 16": dict(weighting="thesis", scale=16.0),
 }
 #: the per-point model alone: no sensor terms (correlation factor 1, no frame term)
-POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
-                   **{name: 0.0 for name in ERROR_TERMS.values()})
+POINTS_ONLY = {"sensor": dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
+                              **{name: 0.0 for name in ERROR_TERMS.values()})}
 #: the thesis's real-data setting: 8 px, its weighting, the published depth model, nothing else
-THESIS_MODEL = dict(POINTS_ONLY, pixel_sigma=8.0, weighting="thesis", depth_sigma_scale=1.0, rolling_shutter_s=0.0)
+THESIS_MODEL = {"noise": dict(pixel_sigma=8.0, depth_sigma_scale=1.0), "estimator": dict(weighting="thesis"),
+                "sensor": dict(POINTS_ONLY["sensor"], rolling_shutter_s=0.0)}
+
+
+def variant(*parts: dict) -> OdometryConfig:
+    """The default configuration with the settings of ``parts`` (group -> settings) changed."""
+    groups: dict[str, dict] = {}
+    for part in parts:
+        for group, settings in part.items():
+            groups.setdefault(group, {}).update(settings)
+    return OdometryConfig.from_dict(groups)
+
+
 REAL_VARIANTS = {
-    "default (consistent, 2 px, frame clock, sensor and frame-level terms, rolling-shutter compensation, integrity check)":
-        OdometryConfig(),
-    "default without rolling-shutter compensation": OdometryConfig(rolling_shutter_s=0.0),
-    "default without the frame clock": OdometryConfig(frame_clock=False),
-    "default without the frame-level terms": OdometryConfig(**{name: 0.0 for name in ERROR_TERMS.values()}),
-    "default without the integrity check": OdometryConfig(integrity_threshold=1e300),
-    "default with the published depth model (depth_sigma_scale 1)": OdometryConfig(depth_sigma_scale=1.0),
-    "default, keyframe mode": OdometryConfig(keyframes=True),
-    "consistent, 2 px, per-point model only": OdometryConfig(**POINTS_ONLY),
-    "consistent, 2 px, per-point model only, variance factor": OdometryConfig(**POINTS_ONLY, variance_factor=True),
-    "consistent, 2 px, per-point model only, Huber": OdometryConfig(**POINTS_ONLY, robust="huber"),
-    "consistent, 2 px, per-point model only, Cauchy": OdometryConfig(**POINTS_ONLY, robust="cauchy"),
-    "default + Huber": OdometryConfig(robust="huber"),
-    "consistent, 8 px, per-point model only": OdometryConfig(**POINTS_ONLY, pixel_sigma=8.0),
-    "thesis, 8 px, phi = 1": OdometryConfig(**THESIS_MODEL),
-    "thesis, 8 px, phi = 16": OdometryConfig(**THESIS_MODEL, scale=16.0),
+    "default (consistent, 2 px, frame clock, sensor and frame-level terms, rolling-shutter compensation, "
+    "integrity check)": OdometryConfig(),
+    "default without rolling-shutter compensation": variant({"sensor": {"rolling_shutter_s": 0.0}}),
+    "default without the frame clock": variant({"sensor": {"frame_clock": False}}),
+    "default without the frame-level terms": variant({"sensor": {name: 0.0 for name in ERROR_TERMS.values()}}),
+    "default without the integrity check": variant({"sensor": {"integrity_threshold": 1e300}}),
+    "default with the published depth model (depth_sigma_scale 1)": variant({"noise": {"depth_sigma_scale": 1.0}}),
+    "default, keyframe mode": variant({"tracking": {"keyframes": True}}),
+    "consistent, 2 px, per-point model only": variant(POINTS_ONLY),
+    "consistent, 2 px, per-point model only, variance factor": variant(POINTS_ONLY,
+                                                                       {"estimator": {"variance_factor": True}}),
+    "consistent, 2 px, per-point model only, Huber": variant(POINTS_ONLY, {"estimator": {"robust": "huber"}}),
+    "consistent, 2 px, per-point model only, Cauchy": variant(POINTS_ONLY, {"estimator": {"robust": "cauchy"}}),
+    "default + Huber": variant({"estimator": {"robust": "huber"}}),
+    "consistent, 8 px, per-point model only": variant(POINTS_ONLY, {"noise": {"pixel_sigma": 8.0}}),
+    "thesis, 8 px, phi = 1": variant(THESIS_MODEL),
+    "thesis, 8 px, phi = 16": variant(THESIS_MODEL, {"estimator": {"scale": 16.0}}),
 }
 #: variants whose per-pair errors and covariances feed the calibration section
 CALIBRATION_RUNS = {"frame to frame": "consistent, 2 px, per-point model only",
@@ -150,7 +164,7 @@ def pair_errors(seq: TumSequence, steps, cfg: OdometryConfig) -> dict:
     from covo_gtsam.metrics import relative_pose_tangent_errors
 
     lookup = ground_truth_lookup(seq)
-    kept = [st for st in steps if st.status == "tracked" and st.ref_timestamp in lookup and st.timestamp in lookup]
+    kept = [st for st in steps if st.has_relative_pose and st.ref_timestamp in lookup and st.timestamp in lookup]
     T_est, T_true, covs = relative_ground_truth(kept, lookup)
     index = {t: i for i, t in enumerate(seq.timestamps)}
     return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "T_est": T_est, "T_true": T_true,
@@ -161,15 +175,16 @@ def pair_errors(seq: TumSequence, steps, cfg: OdometryConfig) -> dict:
 def real_tables(data: Path, out_dir: Path, pairs: dict) -> list[str]:
     seqs = sorted(p for p in (data / "tum").iterdir() if (p / "rgb.txt").is_file()) if (data / "tum").is_dir() else []
     lines = ["## Real data (shared TUM frames)", "",
-             "ANEES translation / rotation, then the share of NEES above the chi2(3) 97.5 % quantile (9.35), "
+             "ANEES translation / rotation, then the share of NEES above the chi2(3) 97.5 % quantile "
+             f"({CHI2_3_975:.2f}), "
              "and the translational RPE over 30 frames where the sequence is long enough.", ""]
     if not seqs:
         return lines + [f"(no sequences under {data})", ""]
     lines += ["| variant | " + " | ".join(s.name for s in seqs) + " |", "|---" * (len(seqs) + 1) + "|"]
-    from covo_gtsam.plots import _plt, nees_histogram
-    from covo_gtsam.metrics import relative_pose_nees
-
     import tempfile
+
+    from covo_gtsam.metrics import relative_pose_nees
+    from covo_gtsam.plots import _plt, nees_histogram
 
     tmp = Path(tempfile.mkdtemp(prefix="covo-study-"))
     for name, cfg in REAL_VARIANTS.items():
@@ -219,7 +234,6 @@ DEPTH_SCALES = (1.0, 2.0, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 6.0, 8.0)
 
 def depth_scale_table(data: Path) -> list[str]:
     """Accuracy over depth_sigma_scale: chosen on the calibration half, checked on the rest."""
-    import dataclasses
     import tempfile
 
     lines = ["## Depth noise scale", ""]
@@ -242,7 +256,7 @@ def depth_scale_table(data: Path) -> list[str]:
 
     rows = {}
     for scale in DEPTH_SCALES:
-        cfg = dataclasses.replace(OdometryConfig(), depth_sigma_scale=scale)
+        cfg = OdometryConfig().replace(noise={"depth_sigma_scale": scale})
         first = metrics(rpy, cfg, (0, last + 1))["rpe_1"]["trans_rmse"]
         second = metrics(rpy, cfg, (last, n))
         whole = metrics(rpy, cfg, None)
@@ -254,7 +268,8 @@ def depth_scale_table(data: Path) -> list[str]:
         mark = "**" if scale == best else ""
         lines.append(f"| {mark}{scale:g}{mark} | {mark}{r[0]:.5f}{mark} | {r[1]:.4f} / {r[2]:.4f} | {r[3]:.4f} | "
                      f"{r[4]:.4f} / {r[5]:.4f} |")
-    lines += ["", f"Smallest RPE1 on the calibration half: {best:g} (default: {OdometryConfig().depth_sigma_scale:g})."]
+    default = OdometryConfig().noise.depth_sigma_scale
+    lines += ["", f"Smallest RPE1 on the calibration half: {best:g} (default: {default:g})."]
     return lines + [""]
 
 
@@ -332,8 +347,8 @@ def main() -> None:
     lines += real_tables(args.data, fig_dir, pairs)
     lines += depth_edge_table(min(args.runs, 200))
     lines += depth_scale_table(args.data)
-    lines += ["## Sensor terms", "", "The fit of the sensor terms and its cross-validation (both halves of the shared fr1_rpy "
-              "frames, fr1_desk) are in [cross_validation.md](cross_validation.md) "
+    lines += ["## Sensor terms", "", "The fit of the sensor terms and its cross-validation (both halves of the shared "
+              "fr1_rpy frames, fr1_desk) are in [cross_validation.md](cross_validation.md) "
               "(`python studies/cross_validation.py`).", ""]
     lines += chain_tables(pairs)
     args.out.write_text("\n".join(lines) + "\n")

@@ -13,7 +13,6 @@ check: ANEES translation / rotation, share of NEES above 9.35, largest NEES, 30-
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import tempfile
 from pathlib import Path
@@ -23,16 +22,22 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from covo_gtsam.calibration import fit_sensor_terms, sensor_covariance  # noqa: E402
+from covo_gtsam.calibration import (  # noqa: E402
+    DEFAULT_TERMS,
+    ERROR_TERMS,
+    PRIOR_TERMS,
+    fit_sensor_terms,
+    sensor_covariance,
+)
+from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.covariance import compose_covariance  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors  # noqa: E402
-from covo_gtsam.odometry import OdometryConfig  # noqa: E402
-from covo_gtsam.calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS  # noqa: E402
 from covo_gtsam.pipeline import calibration_pairs, prior_covariances, run_sequence, stacked_bases  # noqa: E402
 
 RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
+#: the per-point model alone (sensor settings): no sensor terms
 POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
                    **{name: 0.0 for name in ERROR_TERMS.values()})
 #: covariance models compared: the frame-level terms each fits besides kappa and the frame term
@@ -42,12 +47,12 @@ MODELS = {"kappa + frame term": (), "+ timing": ("timing",), "+ timing, rolling 
 CHAIN = 30
 
 
-def per_point_pairs(data: Path, name: str, **overrides) -> dict:
+def per_point_pairs(data: Path, name: str, **sensor) -> dict:
     """Errors (N, 6), per-point covariances (N, 6, 6), frame-level error bases (name -> (N, 6, 6)),
     end frame index (N,) and true/estimated poses of the consecutive pairs with ground truth,
-    per-point model alone."""
+    per-point model alone (and the ``sensor`` settings given)."""
     seq = TumSequence(data / "tum" / name)
-    cfg = dataclasses.replace(OdometryConfig(), **POINTS_ONLY, **overrides)
+    cfg = OdometryConfig().replace(sensor={**POINTS_ONLY, **sensor})
     with tempfile.TemporaryDirectory() as tmp:
         run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False, keep_error_bases=True)
     lookup = ground_truth_lookup(seq)
@@ -55,7 +60,7 @@ def per_point_pairs(data: Path, name: str, **overrides) -> dict:
     fit_ok = {id(s) for s in calibration_pairs(run.steps, lookup, cfg)}  # the pairs covo calibrate fits
     T_est, T_true, covs = relative_ground_truth(pairs, lookup)
     index = {t: i for i, t in enumerate(seq.timestamps)}
-    priors = {k: getattr(OdometryConfig(), ERROR_TERMS[k]) for k in PRIOR_TERMS}
+    priors = {k: getattr(OdometryConfig().sensor, ERROR_TERMS[k]) for k in PRIOR_TERMS}
     return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "bases": stacked_bases(pairs),
             "fixed": prior_covariances(pairs, priors), "fit_ok": np.array([id(s) in fit_ok for s in pairs], bool),
             "end": np.array([index[s.timestamp] for s in pairs]), "T_est": T_est, "T_true": T_true}
@@ -97,7 +102,8 @@ def check(fit, p: dict) -> str:
     nt, nr = nees(p["err"][:, 3:], covs[:, 3:, 3:]), nees(p["err"][:, :3], covs[:, :3, :3])
     ct, cr = chain_anees(p, covs)
     chain = "—" if np.isnan(ct) else f"{ct:.2f} / {cr:.2f}"
-    return (f"{nt.mean():.2f} / {nr.mean():.2f} | {100 * np.mean(nt > 9.35):.0f} % / {100 * np.mean(nr > 9.35):.0f} % | "
+    return (f"{nt.mean():.2f} / {nr.mean():.2f} | "
+            f"{100 * np.mean(nt > 9.35):.0f} % / {100 * np.mean(nr > 9.35):.0f} % | "
             f"{nt.max():.1f} / {nr.max():.1f} | {chain} | {log_likelihood(p['err'], covs):.2f}")
 
 
@@ -114,10 +120,12 @@ def tables(data: Path) -> list[str]:
     lines = []
     for label, overrides in (("default (frame clock on)", {}), ("frame clock off", {"frame_clock": False})):
         rpy, desk = per_point_pairs(data, RPY, **overrides), per_point_pairs(data, DESK, **overrides)
-        halves = {"A: pairs ending in frames 1-119": rpy["end"] <= 119, "B: pairs ending in frames 120-239": rpy["end"] >= 120}
+        halves = {"A: pairs ending in frames 1-119": rpy["end"] <= 119,
+                  "B: pairs ending in frames 120-239": rpy["end"] >= 120}
         lines += [f"### {label}", "",
                   "| fitted on | model | terms | checked on | ANEES t / r | NEES > 9.35 t / r | largest NEES t / r | "
-                  f"{CHAIN}-pair chains ANEES t / r | log-likelihood per pair |", "|---|---|---|---|---|---|---|---|---|"]
+                  f"{CHAIN}-pair chains ANEES t / r | log-likelihood per pair |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for fit_name, m in halves.items():
             train = subset(rpy, m & rpy["fit_ok"])
             for model, names in MODELS.items():
@@ -127,8 +135,9 @@ def tables(data: Path) -> list[str]:
                     if other != fit_name:
                         lines.append(f"| {fit_name[:1]} | {model} | {fit_row(fit)} | {other[:1]} (held out) | "
                                      f"{check(fit, subset(rpy, mo))} |")
-                lines.append(f"| {fit_name[:1]} | {model} | {fit_row(fit)} | fr1_desk (held out) | {check(fit, desk)} |")
-                lines.append(f"| {fit_name[:1]} | {model} | {fit_row(fit)} | {fit_name[:1]} (in sample) | {check(fit, train)} |")
+                row = f"| {fit_name[:1]} | {model} | {fit_row(fit)} |"
+                lines.append(f"{row} fr1_desk (held out) | {check(fit, desk)} |")
+                lines.append(f"{row} {fit_name[:1]} (in sample) | {check(fit, train)} |")
         lines.append("")
     return lines
 

@@ -23,11 +23,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from covo_gtsam.calibration import ERROR_TERMS, fit_sensor_terms  # noqa: E402
-from covo_gtsam.odometry import OdometryConfig  # noqa: E402
+from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_sequence  # noqa: E402
 
-TRUTH = OdometryConfig(pixel_sigma=1.0, depth_sigma_scale=1.0, correlation_factor=1.0, frame_sigma_rot_deg=0.0,
-                       frame_sigma_trans_m=0.0, **{name: 0.0 for name in ERROR_TERMS.values()})
+TRUTH = OdometryConfig().replace(noise={"pixel_sigma": 1.0, "depth_sigma_scale": 1.0}, sensor={
+    "correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0,
+    **{name: 0.0 for name in ERROR_TERMS.values()}})
 SIM = SequenceSimulationConfig(period_s=1 / 29.7, stamp_jitter_s=0.002, depth_scale_sigma=0.0005, bad_frame_rate=0.05)
 
 

@@ -33,12 +33,13 @@ def test_sensor_covariance_scales_points_and_adds_frame_term():
 
 def test_config_sensor_covariance_uses_the_interval_count():
     cfg = OdometryConfig()
+    sensor = cfg.sensor
     P = np.diag([1e-6] * 3 + [1e-6] * 3)
-    dt = 2 * cfg.frame_interval_s
-    expected = sensor_covariance(P, cfg.correlation_factor, np.deg2rad(cfg.frame_sigma_rot_deg),
-                                 cfg.frame_sigma_trans_m, 2)
+    dt = 2 * sensor.frame_interval_s
+    expected = sensor_covariance(P, sensor.correlation_factor, np.deg2rad(sensor.frame_sigma_rot_deg),
+                                 sensor.frame_sigma_trans_m, 2)
     np.testing.assert_allclose(cfg.sensor_covariance(P, dt), expected)
-    np.testing.assert_allclose(cfg.sensor_covariance(P, dt) - cfg.correlation_factor * P, cfg.frame_noise(dt))
+    np.testing.assert_allclose(cfg.sensor_covariance(P, dt) - sensor.correlation_factor * P, cfg.frame_noise(dt))
 
 
 def test_log_likelihood_matches_gaussian_density():
@@ -51,6 +52,7 @@ def test_log_likelihood_matches_gaussian_density():
         log_likelihood(e, C[:, :5, :5])
 
 
+@pytest.mark.slow
 def test_fit_recovers_the_terms_errors_were_drawn_with():
     """Errors drawn from kappa*P + frame term (2000 pairs) give back kappa, s_r and s_t."""
     rng = np.random.default_rng(2)
@@ -110,6 +112,7 @@ def test_timing_term_matches_monte_carlo_of_stamp_errors():
     np.testing.assert_allclose(C, sensor_covariance(P, 2.0, 0.001, 0.002) + pred)
 
 
+@pytest.mark.slow
 def test_fit_recovers_frame_level_terms():
     """Errors drawn with a timing term (tau 3 ms, over twists of varying speed) and a rank-one
     depth-scale term (0.2 %) give back both sigmas and kappa."""

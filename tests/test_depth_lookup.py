@@ -68,7 +68,7 @@ def test_depth_edges_widen_the_point_covariances_of_a_real_frame(sample_dir):
     from covo_gtsam.datasets.tum import TumSequence
 
     grey, depth = TumSequence(sample_dir).load(0)
-    plain = VisualOdometry("fr1", OdometryConfig(depth_lookup_noise=False)).prepare(grey, depth)
+    plain = VisualOdometry("fr1", OdometryConfig().replace(noise={"depth_lookup_noise": False})).prepare(grey, depth)
     edges = VisualOdometry("fr1", OdometryConfig()).prepare(grey, depth)
     v = plain.valid
     zz_plain, zz = plain.covariances[v, 2, 2], edges.covariances[v, 2, 2]
@@ -89,7 +89,7 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
     seq = TumSequence(sample_dir)
 
     def run(offset_s, factor):
-        vo = VisualOdometry("fr1", OdometryConfig(depth_offset_factor=factor, frame_clock=False))
+        vo = VisualOdometry("fr1", OdometryConfig().replace(noise={"depth_offset_factor": factor}, sensor={"frame_clock": False}))
         steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.timestamps[i] + offset_s)
                  for i in range(4)]
         return steps[-1]

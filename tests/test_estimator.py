@@ -6,7 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from covo_gtsam.covariance import compose_covariance, tangent_to_tq, tq_to_tangent, tangent_to_ros, ros_to_tangent
+from covo_gtsam.covariance import compose_covariance, ros_to_tangent, tangent_to_ros, tangent_to_tq, tq_to_tangent
 from covo_gtsam.errors import CovoError, DegenerateGeometryError, EstimationError, InputError, InsufficientPairsError
 from covo_gtsam.estimator import POSE_KEY, estimate_relative_pose
 from covo_gtsam.factors import transfer_factor

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,9 +17,11 @@ SAMPLE = "data/rgbd_dataset_freiburg1_rpy_head40"
 pytestmark = pytest.mark.skipif(not (ROOT / SAMPLE).is_dir(), reason="sample sequence missing")
 
 
-def run_example(*args: str, timeout: float = 120.0) -> tuple[dict, str]:
-    """Run an example script; the timeout only guards against a hang (speed lives in benchmarks/)."""
-    proc = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+def run_example(*args: str, timeout: float = 120.0, env: dict | None = None) -> tuple[dict, str]:
+    """Run an example script from the repository root; the timeout only guards against a hang
+    (speed lives in benchmarks/)."""
+    proc = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout,
+                          env=env)
     assert proc.returncode == 0, f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
     lines = proc.stdout.strip().splitlines()
     assert lines, "no output"
@@ -38,6 +41,7 @@ def finite_numbers(obj) -> list[float]:
     return []
 
 
+@pytest.mark.slow
 def test_pose_graph_isam2(tmp_path):
     out = tmp_path / "pg"
     summary, stdout = run_example(
@@ -55,12 +59,27 @@ def test_pose_graph_isam2(tmp_path):
     assert "ATE RMSE" in stdout
 
 
+def test_pose_graph_isam2_without_out_writes_into_a_temporary_folder(tmp_path):
+    """Without --out the results go to a new folder in the temporary directory, never into the
+    folder it is run from (here the repository root)."""
+    before = sorted(p.name for p in ROOT.iterdir())
+    summary, stdout = run_example(
+        "examples/pose_graph_isam2.py", SAMPLE, "--max-frames", "8", "--fix-every", "3", "--no-plots",
+        env={**os.environ, "TMPDIR": str(tmp_path)})
+    out = Path(next(ln for ln in stdout.splitlines() if ln.startswith("results in ")).removeprefix("results in "))
+    assert out.parent == tmp_path and out.name.startswith("covo-pose-graph-")
+    assert json.loads((out / "pose_graph.json").read_text())["frames"] == summary["frames"] == 8
+    assert (out / "vo" / "trajectory.txt").is_file()
+    assert sorted(p.name for p in ROOT.iterdir()) == before
+
+
 def test_pose_graph_isam2_rejects_bad_arguments(tmp_path):
     proc = subprocess.run([sys.executable, "examples/pose_graph_isam2.py", SAMPLE, "--out", str(tmp_path),
                            "--fix-every", "0"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "error" in proc.stderr
 
 
+@pytest.mark.slow
 def test_compare_covariances(tmp_path):
     summary, stdout = run_example(
         "examples/compare_covariances.py", "--runs", "30", "--seq", SAMPLE, "--out", str(tmp_path))

@@ -14,10 +14,10 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
+from covo_gtsam import odometry
 from covo_gtsam.cli import main
 from covo_gtsam.errors import InputError
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
-from covo_gtsam import odometry
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
 #: metrics of covo run that are None exactly when not_computed names them
@@ -101,14 +101,14 @@ def test_register_frame_after_a_huge_gap_is_lost(sample_dir):
     assert step.status == "lost" and step.covariance is None and "reference frame" in step.reason
     # the frames that follow at the new time are not matched across the gap either; after
     # restart_after of them a new segment starts, with a finite pose covariance
-    steps = [vo.register_frame(*images[k % 2], 1e300) for k in range(vo.config.restart_after)]
+    steps = [vo.register_frame(*images[k % 2], 1e300) for k in range(vo.config.tracking.restart_after)]
     assert steps[-1].status == "restart" and np.all(np.isfinite(steps[-1].pose_covariance))
 
 
 def test_frame_intervals_refuses_a_gap_no_recording_has():
     MAX_GAP_S = odometry.MAX_GAP_S
     cfg = OdometryConfig()
-    assert cfg.frame_intervals(MAX_GAP_S) == round(MAX_GAP_S / cfg.frame_interval_s)
+    assert cfg.frame_intervals(MAX_GAP_S) == round(MAX_GAP_S / cfg.sensor.frame_interval_s)
     assert np.all(np.isfinite(cfg.frame_noise(MAX_GAP_S)))
     for dt in (1e300, 1e308, math.inf):
         with pytest.raises(InputError, match="not one recording"):
@@ -124,6 +124,7 @@ def huge_ground_truth(seq: Path, value: str = "1e308") -> None:
         for ln in lines) + "\n")
 
 
+@pytest.mark.slow
 def test_run_with_huge_ground_truth_gives_null_metrics_with_reasons(small_sample, tmp_path, capsys):
     seq, out = small_sample(4), tmp_path / "out"
     huge_ground_truth(seq)
@@ -201,6 +202,7 @@ def fuzz_base(tmp_path_factory):
     return base, names
 
 
+@pytest.mark.slow
 @settings(max_examples=15, deadline=None, derandomize=True, phases=[Phase.explicit, Phase.generate],
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(start=st.sampled_from([0.0, 1305031229.5, -50.0, 1e300]), steps=st.lists(STEPS, min_size=3, max_size=3),

@@ -177,8 +177,8 @@ def test_binary_factor_jacobians_numerically(weighting):
         vals.insert(K1, x1)
         A, e = factor_jacobians(f, vals)
         err = stacked_error(X_k[:m], X_k1[:m], C_b[:m], C_f[:m])
-        num = np.hstack([numerical_jacobian(lambda P: err(P.between(x1)), x0),
-                         numerical_jacobian(lambda P: err(x0.between(P)), x1)])
+        num = np.hstack([numerical_jacobian(lambda P, err=err: err(P.between(x1)), x0),
+                         numerical_jacobian(lambda P, err=err: err(x0.between(P)), x1)])
         assert_linearisation(f, vals, A, e, num, err(T))
         if m == 1:  # per pair: the rows themselves against the factor's own whitened error
 
@@ -188,7 +188,8 @@ def test_binary_factor_jacobians_numerically(weighting):
                 v.insert(K1, P1)
                 return whitened_error(f, v)
 
-            num_own = np.hstack([numerical_jacobian(lambda P: own(P, x1), x0), numerical_jacobian(lambda P: own(x0, P), x1)])
+            num_own = np.hstack([numerical_jacobian(lambda P: own(P, x1), x0),
+                                 numerical_jacobian(lambda P: own(x0, P), x1)])
             np.testing.assert_allclose(A, num_own, rtol=1e-6, atol=1e-5)
         # the binary factor at x0^-1 x1 = T equals the unary factor at T
         v = gtsam.Values()

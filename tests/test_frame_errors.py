@@ -5,7 +5,13 @@ import gtsam
 import numpy as np
 
 from covo_gtsam.estimator import estimate_relative_pose
-from covo_gtsam.frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, rolling_shutter_basis, transfer_gains)
+from covo_gtsam.frame_errors import (
+    depth_scale_basis,
+    depth_time_basis,
+    depth_time_shift,
+    rolling_shutter_basis,
+    transfer_gains,
+)
 from covo_gtsam.noise import PointNoiseModel
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements
 

@@ -17,7 +17,7 @@ from covo_gtsam.pipeline import run_sequence
 @pytest.mark.parametrize("keyframes", [False, True])
 def test_read_g2o_gives_back_trajectory_and_relative_covariances(sample_dir, tmp_path, keyframes):
     seq = TumSequence(sample_dir)
-    cfg = OdometryConfig(keyframes=keyframes)
+    cfg = OdometryConfig().replace(tracking={"keyframes": keyframes})
     res = run_sequence(seq, tmp_path, config=cfg, max_frames=15, plots=False, progress=False)
     graph, values = gtsam.readG2o(str(tmp_path / "graph.g2o"), True)
     stamps, poses = load_tum_trajectory(tmp_path / "trajectory.txt")

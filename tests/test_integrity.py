@@ -5,13 +5,14 @@ import gtsam
 import numpy as np
 import pytest
 
+from covo_gtsam.chi2 import chi2_quantile
 from covo_gtsam.integrity import CHI2_6_MEDIAN, IntegrityScale, depth_free_check, reprojection_system
 from covo_gtsam.noise import PointNoiseModel
 from covo_gtsam.odometry import OdometryConfig
 from covo_gtsam.simulation import SimulationConfig, make_scene, noisy_measurements
 
 FX, FY = 517.3, 516.5
-THRESHOLD = OdometryConfig().integrity_threshold
+THRESHOLD = OdometryConfig().sensor.integrity_threshold
 
 
 #: A frame-rate motion (2 cm, 1.5 deg), as between consecutive frames of a hand-held camera.
@@ -114,7 +115,7 @@ def test_a_biased_depth_image_is_flagged_and_covered():
         assert nees_before > 30  # the bias is a gross error for the per-point covariance
         if q > THRESHOLD:
             caught += 1
-            assert nees_after < 22.46  # chi2(6) 99.9 %
+            assert nees_after < chi2_quantile(0.999, 6)
     assert caught >= 9
 
 

@@ -1,4 +1,5 @@
-"""The results folder: checked before the first frame, never mixing two runs, one writer at a time."""
+"""The results folder: checked before the first frame, never mixing two runs, one writer at a time;
+valid files after an interruption, the same bytes for the same input, figures kept in step."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ def error_line(capsys) -> str:
     return lines[0]
 
 
+@pytest.mark.slow
 def test_interrupted_rerun_leaves_no_results_of_the_earlier_run(small_sample, tmp_path, monkeypatch, capsys):
     seq, out = small_sample(5), tmp_path / "out"
     assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 0
@@ -48,6 +50,7 @@ def test_interrupted_rerun_leaves_no_results_of_the_earlier_run(small_sample, tm
     assert not any((out / "plots").glob("*.png"))
 
 
+@pytest.mark.slow
 def test_rerun_without_plots_removes_the_earlier_figures(small_sample, tmp_path, capsys):
     seq, out = small_sample(4), tmp_path / "out"
     assert main(["run", str(seq), "--out", str(out), "--quiet"]) == 0
@@ -184,3 +187,57 @@ def test_unrelated_import_error_is_not_hidden(monkeypatch):
     monkeypatch.setattr(cli, "build_parser", broken)
     with pytest.raises(ImportError):
         main(["run", "x", "--out", "y"])
+
+
+# -- interrupted runs, determinism, figures --------------------------------------------------------
+
+def test_interrupted_run_leaves_valid_files(small_seq, tmp_path, monkeypatch):
+    from covo_gtsam import odometry
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.pipeline import run_sequence
+
+    original = odometry.VisualOdometry.register_frame
+    calls = {"n": 0}
+
+    def interrupting(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        return original(self, *a, **k)
+
+    monkeypatch.setattr(odometry.VisualOdometry, "register_frame", interrupting)
+    with pytest.raises(KeyboardInterrupt):
+        run_sequence(TumSequence(small_seq), tmp_path / "o", plots=False, progress=False)
+    stamps, poses = load_tum_trajectory(tmp_path / "o" / "trajectory.txt")
+    t_ref, _, rel, covs = load_relative_poses(tmp_path / "o" / "relative.txt")
+    assert len(stamps) == 4 and len(rel) == 3
+    assert np.all(np.isfinite(poses)) and np.all(np.isfinite(covs))
+
+
+def test_same_input_gives_identical_outputs(small_seq, tmp_path):
+    for name in ("a", "b"):
+        assert main(["run", str(small_seq), "--out", str(tmp_path / name), "--quiet", "--no-plots"]) == 0
+    for f in ("trajectory.txt", "relative.txt"):
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes()
+
+
+def test_missing_matplotlib_is_reported_not_silent(small_seq, tmp_path, monkeypatch, capsys):
+    from covo_gtsam import plots
+
+    monkeypatch.setattr(plots, "_plt", lambda: None)
+    assert main(["run", str(small_seq), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "plots skipped" in err and "covo-gtsam[plots]" in err
+    assert not (tmp_path / "o" / "plots").exists()
+
+
+@pytest.mark.slow
+def test_rerun_without_ground_truth_removes_stale_plots(small_seq, tmp_path):
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "o"
+    assert main(["run", str(small_seq), "--out", str(out), "--quiet"]) == 0
+    assert (out / "plots" / "nees.png").exists() and (out / "plots" / "rpe.png").exists()
+    (small_seq / "groundtruth.txt").unlink()
+    assert main(["run", str(small_seq), "--out", str(out), "--quiet"]) == 0
+    assert (out / "plots" / "trajectory.png").exists()
+    assert not (out / "plots" / "nees.png").exists() and not (out / "plots" / "rpe.png").exists()

@@ -32,7 +32,8 @@ def test_frames_without_ground_truth_are_not_scored(random_trajectory):
     rng = np.random.default_rng(0)
     est = [gt[0]]
     for i in range(1, 40):  # an estimate with small per-step errors
-        est.append(est[-1] @ np.linalg.inv(gt[i - 1]) @ gt[i] @ gtsam.Pose3.Expmap(rng.normal(scale=1e-3, size=6)).matrix())
+        step_error = gtsam.Pose3.Expmap(rng.normal(scale=1e-3, size=6)).matrix()
+        est.append(est[-1] @ np.linalg.inv(gt[i - 1]) @ gt[i] @ step_error)
     est = np.array(est)
     valid = np.ones(40, bool)
     valid[:6] = False  # motion capture starts after the first frames ...

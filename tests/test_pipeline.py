@@ -1,8 +1,10 @@
-"""End to end: `covo run` outputs, their conventions, and the metrics on the shared sequences."""
+"""End to end: `covo run` outputs, their conventions, and the metrics on the shared sequences; bad
+frames inside a sequence."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +14,11 @@ from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
 from covo_gtsam.metrics import chi2_quantile, rpe
 
+from conftest import SMALL_SEQ_FRAMES as N_FRAMES
+from conftest import corrupt_frame, frame_files
 
+
+@pytest.mark.slow
 def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["run", str(sample_dir), "--out", str(out), "--quiet"]) == 0
@@ -47,6 +53,7 @@ def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     assert {p.name for p in (out / "plots").iterdir()} >= {"trajectory.png", "nees.png", "rpe.png"}
 
 
+@pytest.mark.slow
 def test_relative_file_round_trip_through_metrics(sample_dir, tmp_path):
     out = tmp_path / "o"
     assert main(["run", str(sample_dir), "--out", str(out), "--quiet", "--no-plots"]) == 0
@@ -60,6 +67,7 @@ def test_relative_file_round_trip_through_metrics(sample_dir, tmp_path):
     assert rpe(seq.groundtruth, np.array(P), 1)["trans_rmse"] == pytest.approx(m["rpe_1"]["trans_rmse"], rel=1e-6)
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_shared_rpy_sequence_accuracy_and_consistency(fr1_rpy_dir, tmp_path):
     out = tmp_path / "rpy"
@@ -72,6 +80,7 @@ def test_shared_rpy_sequence_accuracy_and_consistency(fr1_rpy_dir, tmp_path):
     assert m["share_nees_rotation_above_chi2_975"] <= 0.10
 
 
+@pytest.mark.realdata
 def test_shared_desk_frames_consistent(fr1_desk_dir, tmp_path):
     out = tmp_path / "desk"
     assert main(["run", str(fr1_desk_dir), "--out", str(out), "--quiet", "--no-plots"]) == 0
@@ -88,6 +97,7 @@ def test_shared_desk_frames_consistent(fr1_desk_dir, tmp_path):
     assert m["share_nees_rotation_above_chi2_975"] <= 1 / 8
 
 
+@pytest.mark.slow
 def test_analyze_noise_on_sample(sample_dir, tmp_path, capsys):
     out = tmp_path / "noise"
     assert main(["analyze-noise", str(sample_dir), "--out", str(out), "--quiet", "--max-frames", "10"]) == 0
@@ -108,31 +118,34 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
     from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
     seq = TumSequence(sample_dir)
-    vo = VisualOdometry(seq.camera, OdometryConfig(keyframes=keyframes))
-    err_guess, err_still = [], []
+    vo = VisualOdometry(seq.camera, OdometryConfig().replace(tracking={"keyframes": keyframes}))
+    err_guess, err_still, steps = [], [], []
     for i in range(16):
-        ref_step = vo._ref_step
+        ref_step = None if vo._keyframe is None else vo._keyframe.step
         guess = None if ref_step is None else vo.predict(ref_step, seq.timestamps[i])
         if i >= 2:  # two tracked frames give a velocity
-            s_prev, s_last = vo.steps[-2], vo.steps[-1]
+            s_prev, s_last = steps[-2], steps[-1]
             scale = (seq.timestamps[i] - s_last.timestamp) / (s_last.timestamp - s_prev.timestamp)
             ahead = gtsam.Pose3.Expmap(scale * gtsam.Pose3.Logmap(s_prev.pose.between(s_last.pose)))
             expected = ref_step.pose.between(s_last.pose).compose(ahead)
             np.testing.assert_allclose(guess.matrix(), expected.matrix(), atol=1e-12)
         step = vo.register_frame(*seq.load(i), seq.timestamps[i])
+        steps.append(step)
         assert step.tracked
         if guess is not None and step.ref_timestamp == ref_step.timestamp:
-            still = ref_step.pose.between(vo.steps[-2].pose)
+            still = ref_step.pose.between(steps[-2].pose)
             err_guess.append(np.linalg.norm(gtsam.Rot3.Logmap(guess.rotation().between(step.relative.rotation()))))
             err_still.append(np.linalg.norm(gtsam.Rot3.Logmap(still.rotation().between(step.relative.rotation()))))
     if not keyframes:
         # the camera turns smoothly: predicted rotations are closer to the estimates than "no motion"
         assert len(err_guess) == 14 and np.median(err_guess) < 0.5 * np.median(err_still)
-    assert VisualOdometry(seq.camera, OdometryConfig(motion_model="none")).predict(vo._ref_step, 0.0) is None
+    still = OdometryConfig().replace(tracking={"motion_model": "none"})
+    assert VisualOdometry(seq.camera, still).predict(vo._keyframe.step, 0.0) is None
     with pytest.raises(ConfigError):
-        VisualOdometry(seq.camera, OdometryConfig(motion_model="fast"))
+        VisualOdometry(seq.camera, OdometryConfig().replace(tracking={"motion_model": "fast"}))
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_dir, tmp_path):
     """The defaults of correlation_factor, the frame sigmas and the default frame-level terms are the
@@ -152,7 +165,7 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
     fit, first_half = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False)
     assert 95 <= fit.pairs <= 100  # 119 pairs, less those of the first 20 frames (no clock yet) and flagged ones
     for name, value in fit.config_values().items():
-        assert getattr(default, name) == pytest.approx(value, rel=0.03), name
+        assert getattr(default.sensor, name) == pytest.approx(value, rel=0.03), name
     _, whole = calibrate_sequence(seq, tmp_path / "all", progress=False)
     lookup = ground_truth_lookup(seq)
     index = {t: i for i, t in enumerate(seq.timestamps)}
@@ -169,6 +182,7 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
     assert set(bases) == set(ERROR_TERMS)
 
 
+@pytest.mark.slow
 def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     """`covo calibrate` fits the sensor terms on the sample's 39 consecutive pairs, writes
     calibration.json and prints configuration lines that a config file accepts."""
@@ -185,10 +199,11 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     # the per-point model alone is too confident on real data (ANEES well above 3); the fit inflates it
     assert min(s["per_point_model_anees"]) > 6 and s["correlation_factor"] > 1
     assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 < s["frame_sigma_trans_m"] < 0.01
-    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.split(" = ")[0].isidentifier()]
-    assert len(lines) == 5  # kappa, the two frame sigmas and the default frame-level terms
-    cfg = OdometryConfig.from_dict({k: float(v) for k, v in (ln.split(" = ") for ln in lines)})
-    assert cfg.correlation_factor == pytest.approx(s["correlation_factor"], rel=1e-2)
+    printed = capsys.readouterr().out.splitlines()
+    lines = [ln for ln in printed if ln.split(" = ")[0].isidentifier()]
+    assert len(lines) == 5 and "[sensor]" in printed  # kappa, the two frame sigmas and the default frame-level terms
+    cfg = OdometryConfig.from_dict({"sensor": {k: float(v) for k, v in (ln.split(" = ") for ln in lines)}})
+    assert cfg.sensor.correlation_factor == pytest.approx(s["correlation_factor"], rel=1e-2)
     assert (out / "per_point_run" / "relative.txt").is_file()
 
 
@@ -203,13 +218,12 @@ def test_calibrate_without_ground_truth_is_a_clear_error(sample_dir, tmp_path, c
     assert "needs ground truth" in err and "Traceback" not in err
 
 
+@pytest.mark.realdata
 @pytest.mark.slow
 def test_default_depth_sigma_scale_minimises_rpe1_on_the_first_half_of_fr1_rpy(fr1_rpy_dir, tmp_path):
     """depth_sigma_scale is the value with the smallest translational RPE over 1 frame on frames
     0-119 of the shared fr1_rpy frames; the published model (1) and the neighbours of the default
     on the study's grid do worse there."""
-    import dataclasses
-
     from covo_gtsam.odometry import OdometryConfig
     from covo_gtsam.pipeline import run_sequence
 
@@ -217,12 +231,12 @@ def test_default_depth_sigma_scale_minimises_rpe1_on_the_first_half_of_fr1_rpy(f
     default = OdometryConfig()
 
     def rpe1(scale):
-        cfg = dataclasses.replace(default, depth_sigma_scale=scale)
+        cfg = default.replace(noise={"depth_sigma_scale": scale})
         m = run_sequence(seq, tmp_path / str(scale), config=cfg, max_frames=120, plots=False, progress=False).metrics
         return m["rpe_1"]["trans_rmse"]
 
-    best = rpe1(default.depth_sigma_scale)
-    for scale in (1.0, default.depth_sigma_scale - 1.0, default.depth_sigma_scale + 1.0):
+    best = rpe1(default.noise.depth_sigma_scale)
+    for scale in (1.0, default.noise.depth_sigma_scale - 1.0, default.noise.depth_sigma_scale + 1.0):
         assert best < rpe1(scale)
 
 
@@ -240,3 +254,40 @@ def test_kernel_threads_limits_opencv_and_blas_and_restores_them():
         assert cv2.getNumThreads() == 1
         assert all(n == 1 for n in blas_threads())
     assert cv2.getNumThreads() == cv_before and blas_threads() == blas_before
+
+
+# -- bad frames inside a sequence: the frame is lost, the run goes on ------------------------------
+
+def run_and_load(seq: Path, out: Path, progress: bool = False) -> tuple[dict, tuple]:
+    args = ["run", str(seq), "--out", str(out), "--no-plots"] + ([] if progress else ["--quiet"])
+    assert main(args) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    return m, load_relative_poses(out / "relative.txt")
+
+
+@pytest.mark.parametrize("kind", ["truncated", "random", "small", "depth8", "zero_depth", "uniform", "jump"])
+def test_bad_frame_is_lost_and_run_continues(small_seq, tmp_path, kind):
+    t_bad = corrupt_frame(small_seq, 3, kind)
+    _, _, t_prev = frame_files(small_seq, 2)
+    m, (t_ref, t_cur, rel, covs) = run_and_load(small_seq, tmp_path / "o")
+    assert m["lost_frames"] == 1, m["lost"]
+    assert m["restarts"] == []
+    assert m["lost"][0]["timestamp"] == pytest.approx(t_bad) and m["lost"][0]["reason"]
+    assert m["tracked_frames"] == N_FRAMES - 1
+    # the frame after the lost one is matched to the last good one
+    k = int(np.argmin(np.abs(t_cur - frame_files(small_seq, 4)[2])))
+    assert t_ref[k] == pytest.approx(t_prev, abs=1e-6)
+    assert np.all(np.isfinite(rel)) and np.all(np.isfinite(covs))
+    stamps, _ = load_tum_trajectory(tmp_path / "o" / "trajectory.txt")
+    assert len(stamps) == N_FRAMES - 1
+
+
+@pytest.mark.parametrize("max_frames", [-5, 0, 2.5, True, "3"])
+def test_run_sequence_rejects_bad_max_frames(small_seq, tmp_path, max_frames):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.pipeline import run_sequence
+
+    with pytest.raises(ConfigError, match="max_frames"):
+        run_sequence(TumSequence(small_seq), tmp_path / "o", max_frames=max_frames, plots=False, progress=False)
+    assert not (tmp_path / "o").exists()

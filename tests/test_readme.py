@@ -39,8 +39,8 @@ def test_readme_odometry_example_runs(sample_dir, capsys):
               for i in range(3)]
     ns: dict = {"frames": frames}
     exec(compile(python_blocks()[1], "README.md", "exec"), ns)
-    vo = ns["vo"]
-    assert [s.status for s in vo.steps] == ["first", "tracked", "tracked"]
+    history = ns["history"]
+    assert [s.status for s in history] == ["first", "tracked", "tracked"] and ns["poses"].shape == (3, 4, 4)
     assert "lost" not in capsys.readouterr().out
 
 
@@ -57,3 +57,35 @@ def test_public_api_is_importable_from_the_package():
 
     with pytest.raises(AttributeError):
         covo_gtsam.no_such_name  # noqa: B018
+    assert set(covo_gtsam.__all__) <= set(dir(covo_gtsam))
+
+
+def test_public_api_covers_the_run_and_its_evaluation():
+    import covo_gtsam
+    from covo_gtsam import RunEvaluation, RunResult, evaluate_run, run_sequence
+    from covo_gtsam.evaluation import RunEvaluation as direct
+
+    assert RunEvaluation is direct and {"ate", "rpe", "relative_pose_nees"} <= set(covo_gtsam.__all__)
+    assert evaluate_run.__module__ == "covo_gtsam.evaluation" and run_sequence.__module__ == "covo_gtsam.pipeline"
+    assert RunResult.__dataclass_fields__["evaluation"]
+
+
+def test_importing_the_package_loads_no_heavy_module():
+    import subprocess
+    import sys
+
+    code = ("import sys, covo_gtsam; heavy = ('numpy', 'gtsam', 'cv2', 'matplotlib', 'scipy'); "
+            "print(sorted(m for m in heavy if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_quick_start_test_command_is_the_one_ci_runs():
+    """.ci/run installs and runs the tests exactly as the README's quick start says: the whole
+    suite, slow tests included."""
+    quick_start = re.search(r"## Quick start\n.*?```bash\n(.*?)```", README.read_text(), flags=re.S).group(1)
+    command = quick_start.strip().splitlines()[-1]  # the second command
+    ci = (README.parent / ".ci" / "run").read_text().splitlines()
+    install, pytest_line = command.split(" && ")[-2:]
+    assert install in ci and pytest_line in ci
+    assert "--run-slow" in pytest_line.split()

@@ -3,8 +3,6 @@ simulated pair, and the odometry's use of it on real frames."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import gtsam
 import numpy as np
 import pytest
@@ -101,8 +99,8 @@ def test_odometry_compensation_on_real_frames(sample_dir):
     runs = {}
     for readout in (0.0, 0.025):
         # without the frame clock, relative poses stay between the captures (velocity = Log(T) / dt)
-        vo = VisualOdometry(seq.camera, dataclasses.replace(OdometryConfig(), rolling_shutter_s=readout,
-                                                            frame_clock=False))
+        vo = VisualOdometry(seq.camera, OdometryConfig().replace(sensor={"rolling_shutter_s": readout,
+                                                                         "frame_clock": False}))
         runs[readout] = [vo.register_frame(*f) for f in frames][1:]
     for off, on in zip(runs[0.0], runs[0.025]):
         assert off.tracked and on.tracked

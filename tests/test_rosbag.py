@@ -64,9 +64,7 @@ def write_bag(path, seq: TumSequence, ros1: bool, colour: str, depth: str, n: in
 
         writer, ser = Writer(path), ts.serialize_ros1
     else:
-        from rosbags.rosbag2 import Writer
-
-        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import StoragePlugin, Writer
 
         plugin = StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
         writer, ser = Writer(path, version=8, storage_plugin=plugin), ts.serialize_cdr
@@ -175,6 +173,8 @@ def _same_trajectory(a, b):
         assert np.linalg.norm(gtsam.Rot3.Logmap(gtsam.Rot3(A[:3, :3].T @ B[:3, :3]))) < 1e-6
 
 
+@pytest.mark.slow
+@pytest.mark.realdata
 def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys):
     seq = TumSequence(fr1_rpy_dir)
     bag = write_bag(tmp_path / "fr1.bag", seq, ros1=True, colour="rgb8", depth="32FC1", chain=True)
@@ -194,6 +194,8 @@ def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys)
     check_output_bag(tmp_path / "bag_out", tmp_path / "bag_out" / "odometry.bag", FRAME)
 
 
+@pytest.mark.slow
+@pytest.mark.realdata
 def test_ros2_bag_bgr8_16uc1_runs_like_the_millimetre_folder(fr1_rpy_dir, tmp_path, capsys):
     seq = TumSequence(fr1_rpy_dir)
     bag = write_bag(tmp_path / "fr1_ros2", seq, ros1=False, colour="bgr8", depth="16UC1", tf=False)
@@ -246,7 +248,7 @@ def check_output_bag(out, bag_path, camera_frame):
         assert m.header.frame_id == "odom" and m.child_frame_id == camera_frame
         assert abs(ns * 1e-9 - t) < 1e-6
         np.testing.assert_allclose(_pose(m.pose.pose).matrix(), P, atol=1e-8)
-    for (ns, m), a, b, T in zip(relm, t_ref, t_cur, rel):
+    for (_, m), a, _, T in zip(relm, t_ref, t_cur, rel):
         assert m.header.frame_id == f"{camera_frame}@{a:.6f}"
         np.testing.assert_allclose(_pose(m.pose.pose).matrix(), T, atol=1e-8)
 
@@ -297,6 +299,7 @@ def check_output_bag(out, bag_path, camera_frame):
     assert np.all(np.abs(eig - 1) < 0.06), eig
 
 
+@pytest.mark.realdata
 def test_bag_bad_input_is_one_line_exit_2(fr1_desk_dir, tmp_path, capsys):
     seq = TumSequence(fr1_desk_dir)
     no_topics = write_bag(tmp_path / "other.bag", seq, ros1=True, colour="rgb8", depth="32FC1", n=3, tf=False,
@@ -318,6 +321,7 @@ def test_bag_bad_input_is_one_line_exit_2(fr1_desk_dir, tmp_path, capsys):
     assert capsys.readouterr().err.count("\n") == 1
 
 
+@pytest.mark.realdata
 @pytest.mark.parametrize("kind", ["ros1", "ros2_mcap"])
 def test_bag_reader_streams_in_order_with_camera_info(fr1_desk_dir, tmp_path, kind):
     seq = TumSequence(fr1_desk_dir)
@@ -336,6 +340,8 @@ def test_bag_reader_streams_in_order_with_camera_info(fr1_desk_dir, tmp_path, ki
         np.testing.assert_array_equal(depth, load_depth(seq.depth_paths[i], 5000.0))
 
 
+@pytest.mark.slow
+@pytest.mark.realdata
 def test_bag_images_are_streamed_memory_stays_flat(fr1_rpy_dir, tmp_path):
     """Peak memory while decoding a bag's frames one by one does not grow with the bag's length."""
     import tracemalloc
@@ -357,6 +363,7 @@ def test_bag_images_are_streamed_memory_stays_flat(fr1_rpy_dir, tmp_path):
     assert peaks[24] < 12 * frame_bytes  # holding all 24 frames would take 24
 
 
+@pytest.mark.realdata
 def test_evaluate_takes_bags_and_folders(fr1_desk_dir, tmp_path, capsys):
     import csv
 

@@ -84,10 +84,11 @@ def test_colour_frame_without_depth_is_accounted_for(small_sample, tmp_path, cap
     assert "no depth image" in m["unassociated"][0]["reason"]
 
 
-@pytest.mark.parametrize("suffix, text", [(".json", '{"pixel_sigma": 3.0}'), (".toml", "pixel_sigma = 3.0")])
+@pytest.mark.parametrize("suffix, text", [(".json", '{"noise": {"pixel_sigma": 3.0}}'),
+                                          (".toml", "[noise]\npixel_sigma = 3.0\n")])
 def test_configuration_file_with_a_byte_order_mark(tmp_path, suffix, text):
-    from covo_gtsam.cli import load_config_file
+    from covo_gtsam.config import load_config
 
     path = tmp_path / f"config{suffix}"
     path.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode("utf-8"))
-    assert load_config_file(str(path)).pixel_sigma == 3.0
+    assert load_config(str(path)).noise.pixel_sigma == 3.0

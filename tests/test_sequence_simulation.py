@@ -1,7 +1,6 @@
 """The realistic simulation: the whole odometry on a synthetic sequence with known error sources.
 The truth is known, so the mechanisms must recover what was injected."""
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -12,16 +11,18 @@ from covo_gtsam.odometry import OdometryConfig
 from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_sequence
 
 #: the odometry told the simulated sensor's true noise, with no sensor-level terms
-TRUTH = OdometryConfig(pixel_sigma=1.0, depth_sigma_scale=1.0, correlation_factor=1.0, frame_sigma_rot_deg=0.0,
-                       frame_sigma_trans_m=0.0, **{name: 0.0 for name in ERROR_TERMS.values()})
+TRUTH = OdometryConfig().replace(noise={"pixel_sigma": 1.0, "depth_sigma_scale": 1.0}, sensor={
+    "correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0,
+    **{name: 0.0 for name in ERROR_TERMS.values()}})
 #: no error source but pixel and depth noise
 CLEAN = dict(stamp_jitter_s=0.0, readout_s=0.0, depth_offset_s=(0.0, 0.0), depth_scale_sigma=0.0, bad_frame_rate=0.0)
 
 
+@pytest.mark.slow
 def test_clean_sequence_is_consistent():
     """Pixel and depth noise only, the odometry told their true size: ANEES within the 95 % band."""
     r = simulate_sequence(SequenceSimulationConfig(frames=120, **CLEAN),
-                          dataclasses.replace(TRUTH, rolling_shutter_s=0.0))
+                          TRUTH.replace(sensor={"rolling_shutter_s": 0.0}))
     nt, nr = r.nees()
     n = len(nt)
     assert r.lost == 0 and n == 119
@@ -29,6 +30,7 @@ def test_clean_sequence_is_consistent():
     assert lo <= nt.mean() <= hi and lo <= nr.mean() <= hi
 
 
+@pytest.mark.slow
 def test_injected_sources_make_the_per_point_model_overconfident():
     """The same odometry on a sequence with stamp jitter, colour-depth offsets and a rolling
     shutter: far outside the band (so the check above can fail)."""
@@ -37,6 +39,7 @@ def test_injected_sources_make_the_per_point_model_overconfident():
     assert max(nt.mean(), nr.mean()) > 6
 
 
+@pytest.mark.slow
 def test_frame_clock_recovers_the_injected_period_and_stamp_offsets():
     cfg = SequenceSimulationConfig(frames=150, period_s=1 / 29.5, stamp_jitter_s=0.003, bad_frame_rate=0.0)
     r = simulate_sequence(cfg, OdometryConfig())

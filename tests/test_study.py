@@ -22,6 +22,8 @@ def _evaluate(seqs, out, *extra):
     return _rows(out)
 
 
+@pytest.mark.slow
+@pytest.mark.realdata
 def test_evaluate_serial_pool_and_dask_give_the_same_numbers(fr1_rpy_dir, fr1_desk_dir, tmp_path, capsys):
     seqs = [fr1_rpy_dir, fr1_desk_dir]
     serial = _evaluate(seqs, tmp_path / "serial", "--workers", "1")
@@ -48,6 +50,7 @@ def test_evaluate_serial_pool_and_dask_give_the_same_numbers(fr1_rpy_dir, fr1_de
         assert a == (tmp_path / "dask" / name / "relative.txt").read_text()
 
 
+@pytest.mark.slow
 def test_simulate_on_workers_and_dask_same_seed_same_numbers(tmp_path):
     base = ["simulate", "--runs", "24", "--points", "60", "--seed", "5", "--no-plots", "--quiet"]
     assert main(base + ["--out", str(tmp_path / "serial")]) == 0
@@ -63,6 +66,8 @@ def test_simulate_on_workers_and_dask_same_seed_same_numbers(tmp_path):
     assert json.loads((tmp_path / "dask" / "metrics.json").read_text()) == serial
 
 
+@pytest.mark.realdata
+@pytest.mark.slow  # waits for the connection to the unreachable scheduler to fail
 def test_unreachable_scheduler_and_bad_sequence_are_one_line_exit_2(fr1_desk_dir, tmp_path, capsys):
     pytest.importorskip("dask.distributed")
     assert main(["evaluate", str(fr1_desk_dir), "--out", str(tmp_path / "a"), "--scheduler", "tcp://127.0.0.1:1",

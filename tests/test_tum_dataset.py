@@ -26,7 +26,10 @@ def rot_z(a: float) -> np.ndarray:
 def benchmark_associate(first, second, max_difference):
     """The TUM benchmark's associate.py (offset 0), with '<=' and indices instead of stamps."""
     potential = sorted(
-        (abs(a - b), a, b, i, j) for i, a in enumerate(first) for j, b in enumerate(second) if abs(a - b) <= max_difference
+        (abs(a - b), a, b, i, j)
+        for i, a in enumerate(first)
+        for j, b in enumerate(second)
+        if abs(a - b) <= max_difference
     )
     used_i, used_j, matches = set(), set(), []
     for _, a, _, i, j in potential:
@@ -133,6 +136,7 @@ def test_interpolation_degenerate_inputs():
 # ---- real sequences ----------------------------------------------------------------------------
 
 
+@pytest.mark.realdata
 def test_desk_9frames(fr1_desk_dir):
     seq = TumSequence(fr1_desk_dir)
     assert len(seq) == 9
@@ -153,6 +157,7 @@ def test_desk_9frames(fr1_desk_dir):
     assert seq.camera.fx == pytest.approx(517.3)
 
 
+@pytest.mark.realdata
 def test_rpy_head240(fr1_rpy_dir):
     seq = TumSequence(fr1_rpy_dir)
     assert 235 <= len(seq) <= 240
@@ -200,7 +205,7 @@ def test_no_groundtruth_and_unknown_camera(tmp_path):
     assert seq.groundtruth is None and not seq.gt_valid.any() and len(seq.gt_valid) == 4
     assert seq.camera_name is None
     with pytest.raises(DatasetError, match="camera"):
-        seq.camera
+        seq.camera  # noqa: B018 (the property raises)
     sentinel = object()
     assert TumSequence(seq.path, camera=sentinel).camera is sentinel
 

@@ -1,0 +1,177 @@
+"""What :meth:`VisualOdometry.register_frame <covo_gtsam.odometry.VisualOdometry.register_frame>`
+returns for each frame (:class:`OdometryStep`, its :class:`StepStatus`), and the record of a run
+that a caller keeps (:class:`StepHistory`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from .choices import Choice
+from .estimator import RelativePoseResult
+
+
+class StepStatus(Choice):
+    """What a registered frame got. Each value is the string written to the results (and compared
+    by earlier code: ``step.status == "tracked"`` still works)."""
+
+    #: The first frame with a pose: it defines the world frame (identity pose); no relative pose.
+    ORIGIN = "first"
+    #: Matched to its reference frame: a relative pose with covariance, and a pose.
+    RELATIVE_POSE = "tracked"
+    #: The first frame of a new segment after ``restart_after`` lost frames: the motion across the
+    #: gap is unknown, so no relative pose; the pose is carried over the gap.
+    NEW_SEGMENT = "restart"
+    #: No pose; ``reason`` says why.
+    LOST = "lost"
+
+    @property
+    def has_pose(self) -> bool:
+        return self is not StepStatus.LOST
+
+
+#: Statuses that carry a pose (:attr:`OdometryStep.has_pose`).
+POSED_STATUSES = (StepStatus.ORIGIN, StepStatus.RELATIVE_POSE, StepStatus.NEW_SEGMENT)
+
+
+@dataclass
+class OdometryStep:
+    """Outcome of one :meth:`~covo_gtsam.odometry.VisualOdometry.register_frame` call.
+
+    ``status`` (:class:`StepStatus`; its string is accepted): with ``RELATIVE_POSE``, ``relative``
+    is T_ref,cur (points of this frame into the reference frame at ``ref_timestamp``) with
+    ``covariance`` in GTSAM's tangent ``[rx ry rz tx ty tz]`` (rad, m; right perturbation).
+    ``pose`` is T_world,cur (world = the first posed camera frame) with ``pose_covariance``
+    composed to first order along the trajectory as if the pairs were independent (over some 30
+    pairs this understates the translation drift on real data; docs/consistency.md, finding 7).
+    A ``NEW_SEGMENT`` step has the last pose and its covariance plus
+    :meth:`~covo_gtsam.config.TrackingConfig.gap_noise`. ``velocity`` is the camera's mean body
+    twist ``[omega, v]`` (rad/s, m/s) over the pair, ``Log(T_ref,cur) / dt``. ``quality`` is the
+    pair's integrity statistic (:mod:`covo_gtsam.integrity`; about chi2(6) for a typical pair of
+    the run, None when it could not be formed) and ``flagged`` tells that it exceeded
+    ``sensor.integrity_threshold``: the covariance then also covers the disagreement of the pair's
+    two depth-free estimates. A back end can gate on either.
+    """
+
+    timestamp: float
+    status: StepStatus
+    reason: str = ""
+    ref_timestamp: float | None = None
+    relative: gtsam.Pose3 | None = None
+    covariance: np.ndarray | None = None
+    pose: gtsam.Pose3 | None = None
+    pose_covariance: np.ndarray | None = None
+    num_matches: int = 0
+    num_pairs: int = 0
+    velocity: np.ndarray | None = None
+    quality: float | None = None
+    flagged: bool = False
+    integrity_statistic: float | None = None
+    clock_offset: float = 0.0
+    clock_samples: int = 0
+    error_bases: dict | None = field(default=None, repr=False)
+    result: RelativePoseResult | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        self.status = StepStatus(self.status)
+
+    @property
+    def has_pose(self) -> bool:
+        """The frame has a pose: status ``ORIGIN``, ``RELATIVE_POSE`` or ``NEW_SEGMENT``."""
+        return self.status.has_pose
+
+    @property
+    def has_relative_pose(self) -> bool:
+        """The frame was matched to its reference frame (status ``RELATIVE_POSE``, ``"tracked"``)."""
+        return self.status is StepStatus.RELATIVE_POSE
+
+    @property
+    def tracked(self) -> bool:
+        """Deprecated name of :attr:`has_pose` (it is not ``status == "tracked"``)."""
+        return self.status.has_pose
+
+
+class StepHistory:
+    """The steps of a run in time order, as a caller keeps them: each without its estimator
+    ``result`` and, unless ``keep_error_bases``, without its ``error_bases`` (what
+    :func:`covo_gtsam.pipeline.calibrate_sequence` fits), so memory stays small on long runs.
+
+    >>> history = StepHistory()
+    >>> step = history.add(vo.register_frame(colour, depth, stamp))   # doctest: +SKIP
+    """
+
+    def __init__(self, keep_error_bases: bool = False) -> None:
+        self.keep_error_bases = keep_error_bases
+        self.steps: list[OdometryStep] = []
+
+    def add(self, step: OdometryStep) -> OdometryStep:
+        """Record ``step`` (a slim copy); returns ``step`` itself."""
+        self.steps.append(dataclasses.replace(step, result=None,
+                                              error_bases=step.error_bases if self.keep_error_bases else None))
+        return step
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def __iter__(self):
+        return iter(self.steps)
+
+    def __getitem__(self, i):
+        return self.steps[i]
+
+    @property
+    def posed_steps(self) -> list[OdometryStep]:
+        return [s for s in self.steps if s.has_pose]
+
+    @property
+    def lost_steps(self) -> list[OdometryStep]:
+        return [s for s in self.steps if not s.has_pose]
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Timestamps (K,) and poses T_world,cur (K, 4, 4) of the frames with a pose."""
+        posed = self.posed_steps
+        stamps = np.array([s.timestamp for s in posed])
+        poses = np.array([s.pose.matrix() for s in posed]).reshape(-1, 4, 4)
+        return stamps, poses
+
+
+class DeprecatedStepAccess:
+    """The history :class:`~covo_gtsam.odometry.VisualOdometry` kept of its steps until this release
+    (``steps``, ``tracked_steps``, ``lost_steps``, ``trajectory()``, ``keep_error_bases``): still
+    there, from the :class:`StepHistory` ``_history`` it fills, with a :class:`DeprecationWarning`;
+    removed in the next release. A caller keeps the steps ``register_frame`` returns instead."""
+
+    _history: StepHistory
+
+    def _deprecated(self, name: str) -> StepHistory:
+        warnings.warn(f"VisualOdometry.{name} is deprecated and will be removed in the next release; keep the "
+                      "steps register_frame returns (covo_gtsam.steps.StepHistory)", DeprecationWarning, stacklevel=3)
+        return self._history
+
+    @property
+    def steps(self) -> list[OdometryStep]:
+        return self._deprecated("steps").steps
+
+    @property
+    def tracked_steps(self) -> list[OdometryStep]:
+        return self._deprecated("tracked_steps").posed_steps
+
+    @property
+    def lost_steps(self) -> list[OdometryStep]:
+        return self._deprecated("lost_steps").lost_steps
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Timestamps (K,) and poses T_world,cur (K, 4, 4) of the posed frames."""
+        return self._deprecated("trajectory()").trajectory()
+
+    @property
+    def keep_error_bases(self) -> bool:
+        return self._deprecated("keep_error_bases").keep_error_bases
+
+    @keep_error_bases.setter
+    def keep_error_bases(self, keep: bool) -> None:
+        self._deprecated("keep_error_bases").keep_error_bases = keep

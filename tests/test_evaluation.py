@@ -1,0 +1,81 @@
+"""The run evaluation: one result object that metrics.json and the figures both read."""
+
+import json
+
+import numpy as np
+import pytest
+
+from covo_gtsam.evaluation import CONSISTENCY_KEYS, RPE_DELTAS, RunEvaluation, evaluate_run
+
+BASE_KEYS = ["sequence", "frames", "tracked_frames", "lost_frames", "lost", "restarts", "unassociated", "elapsed_s",
+             "frames_per_second", "mean_pairs", "flagged_pairs", "flagged"]
+GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS]
+
+
+@pytest.fixture(scope="module")
+def sample_run(tmp_path_factory):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.pipeline import run_sequence
+
+    from conftest import SAMPLE_DIR
+
+    out = tmp_path_factory.mktemp("run")
+    return run_sequence(TumSequence(SAMPLE_DIR), out, max_frames=35, plots=False, progress=False)
+
+
+def test_metrics_json_is_the_result_object_serialised(sample_run):
+    ev = sample_run.evaluation
+    assert isinstance(ev, RunEvaluation)
+    written = json.loads((sample_run.out_dir / "metrics.json").read_text())
+    assert list(written) == [*BASE_KEYS, *GT_KEYS, "self_calibration", "version"]
+    assert written == json.loads(json.dumps(ev.to_dict())) == json.loads(json.dumps(sample_run.metrics))
+    assert ev.to_dict() is not ev.to_dict() and ev.to_dict()["lost"] is not ev.lost  # copies
+
+
+def test_statistics_summarise_the_arrays_kept(sample_run):
+    ev = sample_run.evaluation
+    for delta in RPE_DELTAS:
+        tr, rot = ev.rpe_errors[delta]
+        assert ev.rpe[delta]["n"] == tr.size == rot.size > 0
+        assert ev.rpe[delta]["trans_rmse"] == pytest.approx(np.sqrt(np.mean(tr**2)), rel=1e-15)
+        assert ev.rpe[delta]["rot_mean_deg"] == pytest.approx(np.rad2deg(np.mean(rot)), rel=1e-15)
+    assert ev.ate["n"] == ev.ate_errors.size and ev.ate["max"] == np.max(ev.ate_errors)
+    assert ev.consistency["nees_pairs"] == ev.nees_translation.size == ev.nees_rotation.size
+    assert ev.consistency["anees_translation"] == np.mean(ev.nees_translation)
+    assert ev.consistency["anees_rotation"] == np.mean(ev.nees_rotation)
+    assert ev.tracked_frames + ev.lost_frames == ev.frames == 35
+    assert set(ev.ground_truth) >= {s.timestamp for s in sample_run.steps if s.tracked}
+
+
+def test_figures_read_the_result_object_not_a_second_computation(sample_run, tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    from covo_gtsam import evaluation, metrics
+    from covo_gtsam.plots import RUN_PLOTS, plot_run
+
+    def fail(*args, **kwargs):
+        raise AssertionError("the figures recomputed a metric")
+
+    for module in (evaluation, metrics):
+        for name in ("relative_pose_nees", "relative_pose_errors", "ate_errors", "segment_rpe_errors",
+                     "relative_ground_truth", "tracked_segments", "ground_truth_lookup"):
+            if hasattr(module, name):
+                monkeypatch.setattr(module, name, fail)
+    written = plot_run(sample_run.steps, sample_run.evaluation, tmp_path)
+    assert sorted(p.name for p in written) == sorted(RUN_PLOTS)
+    assert all(p.stat().st_size > 0 for p in written)
+
+
+def test_without_ground_truth_only_the_counts():
+    from types import SimpleNamespace
+
+    import gtsam
+
+    from covo_gtsam.odometry import OdometryStep
+
+    steps = [OdometryStep(0.0, "first", pose=gtsam.Pose3()), OdometryStep(0.1, "lost", reason="no depth")]
+    ev = evaluate_run(steps, SimpleNamespace(name="x", groundtruth=None), 2.0)
+    assert not ev.has_ground_truth and ev.rpe == {} and ev.ate is None and ev.nees_translation.size == 0
+    d = ev.to_dict()
+    assert list(d) == BASE_KEYS
+    assert d["frames_per_second"] == 1.0 and d["lost"] == [{"timestamp": 0.1, "reason": "no depth"}]
+    assert evaluate_run(steps, SimpleNamespace(name="x", groundtruth=None), 0.0).frames_per_second is None

@@ -1,0 +1,180 @@
+"""Visual odometry (covo_gtsam.odometry): lost frames and restarts, bad frames and stamps through
+the library API, the configuration's checks, the frame-level covariance term."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from covo_gtsam.camera import Camera
+from covo_gtsam.odometry import VisualOdometry
+
+
+def test_run_restarts_after_a_run_of_lost_frames(sample_dir):
+    """Frames 3..4 are blank, then the view jumps (flipped images, which cannot be matched to the
+    last good frame): after restart_after lost frames the next frame starts a new segment and
+    the frames after it are tracked again instead of being lost for good."""
+    from covo_gtsam.datasets.images import load_depth
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.graph import between_factors
+    from covo_gtsam.odometry import OdometryConfig
+
+    seq = TumSequence(sample_dir)
+    cfg = OdometryConfig().replace(tracking={"restart_after": 3})
+    vo = VisualOdometry(seq.camera, cfg)
+    steps = []
+    for i in range(10):
+        img = cv2.imread(seq.rgb_paths[i])
+        if i in (3, 4):
+            img = np.full_like(img, 128)
+        elif i >= 5:
+            img = np.ascontiguousarray(np.roll(img[::-1, ::-1], 200, axis=1))
+        steps.append(vo.register_frame(img, load_depth(seq.depth_paths[i]), seq.timestamps[i]))
+    statuses = [s.status for s in steps]
+    # 3, 4 blank and 5 (flipped) lost; 6 cannot be matched to frame 2 either and restarts
+    assert statuses == ["first", "tracked", "tracked", "lost", "lost", "lost", "restart",
+                        "tracked", "tracked", "tracked"], statuses
+    last, restart = steps[2], steps[6]
+    assert restart.relative is None and "3 lost frames" in restart.reason
+    assert np.allclose(restart.pose.matrix(), last.pose.matrix())
+    assert np.allclose(restart.pose_covariance, last.pose_covariance + cfg.gap_noise())
+    assert steps[7].ref_timestamp == pytest.approx(restart.timestamp)
+    factors, initial = between_factors(steps)
+    assert len(factors) == 2 + 3 and initial.size() == 7  # no factor across the gap
+
+
+def test_register_frame_with_zero_depth_is_lost():
+    vo = VisualOdometry(Camera.preset("fr1"))
+    img = (np.random.default_rng(0).random((480, 640)) * 255).astype(np.uint8)
+    step = vo.register_frame(img, np.zeros((480, 640), np.uint16), 1.0)
+    assert step.status == "lost" and "depth" in step.reason
+
+
+def test_register_frame_with_wrong_shapes_is_lost():
+    vo = VisualOdometry(Camera.preset("fr1"))
+    step = vo.register_frame(np.zeros((240, 320), np.uint8), np.zeros((240, 320), np.uint16), 1.0)
+    assert step.status == "lost" and "size" in step.reason
+
+
+def test_register_frame_rejects_bad_timestamps(sample_dir):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.errors import InputError
+
+    seq = TumSequence(sample_dir)
+    vo = VisualOdometry(seq.camera)
+    frame = vo.prepare(*seq.load(0))
+    assert vo.register_frame(frame, timestamp=10.0).status == "first"
+    for bad, needle in ((float("nan"), "finite"), (float("inf"), "finite"), (9.5, "earlier"), ("11", "number"),
+                        (None, "number")):
+        with pytest.raises(InputError, match=needle):
+            vo.register_frame(frame, timestamp=bad)
+    with pytest.raises(InputError, match="earlier"):
+        vo.mark_lost(9.0, "unreadable")
+    assert vo._last_stamp == 10.0  # rejected frames are not recorded
+    # a repeated stamp is accepted (no velocity over a zero interval)
+    step = vo.register_frame(frame, timestamp=10.0)
+    assert step.tracked and step.velocity is None and np.all(np.isfinite(step.covariance))
+
+
+def test_camera_preset_names_are_accepted(small_seq):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.errors import ConfigError
+
+    assert TumSequence(small_seq, camera="fr2").camera == Camera.preset("fr2")
+    assert TumSequence(small_seq, camera="freiburg3").camera == Camera.preset("fr3")
+    with pytest.raises(ConfigError, match="fr9"):
+        TumSequence(small_seq, camera="fr9")
+    assert VisualOdometry("fr1").camera == Camera.preset("fr1")
+    with pytest.raises(ConfigError, match="camera must be a Camera or a preset name"):
+        VisualOdometry(5)
+    with pytest.raises(ConfigError, match="config must be an OdometryConfig"):
+        VisualOdometry("fr1", {"keyframes": True})
+
+
+# -- configuration values: every field type- and range-checked -----------------------------------
+
+def _bad_values(default) -> list:
+    """Values of the wrong type (or out of range) for a field with this default."""
+    if isinstance(default, bool):
+        return ["false", "true", 0, 1, None]
+    if isinstance(default, int):
+        return [True, 2.5, "3", None, -1]
+    if isinstance(default, float):
+        return [True, "1.0", None, float("nan"), -1.0]
+    if isinstance(default, str):
+        return [5, "no-such-choice", None, ["rigid3d"]]
+    return [True, "x", -1, 2.5]  # robust/max_hamming (None by default)
+
+
+def _config_cases():
+    import dataclasses
+
+    from covo_gtsam.config import GROUPS
+
+    for group, cls in GROUPS.items():
+        for f in dataclasses.fields(cls):
+            default = getattr(cls(), f.name)
+            for bad in _bad_values(default):
+                if f.name == "robust" and bad is None:
+                    continue  # None is a valid kernel choice
+                yield pytest.param(group, f.name, bad, id=f"{group}.{f.name}={bad!r}")
+
+
+@pytest.mark.parametrize("group,name,bad", list(_config_cases()))
+def test_every_config_field_rejects_wrong_types(group, name, bad):
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.odometry import OdometryConfig
+
+    with pytest.raises(ConfigError) as info:
+        OdometryConfig.from_dict({group: {name: bad}})
+    assert f"{group}.{name}" in str(info.value)
+
+
+def test_config_accepts_its_own_dict_and_numpy_scalars():
+    from covo_gtsam.odometry import OdometryConfig
+
+    cfg = OdometryConfig()
+    assert OdometryConfig.from_dict(cfg.to_dict()) == cfg
+    assert OdometryConfig.from_dict({"frontend": None}) == cfg
+    OdometryConfig.from_dict({"noise": {"pixel_sigma": np.float32(1.5)},
+                              "tracking": {"restart_after": np.int64(3), "keyframes": np.bool_(True)},
+                              "frontend": {"n_features": np.int32(500), "scale_factor": 2}})
+
+
+def test_orb_pyramid_and_patch_must_fit_the_camera():
+    from covo_gtsam.errors import ConfigError
+    from covo_gtsam.frontend import FrontendConfig
+    from covo_gtsam.odometry import OdometryConfig
+
+    with pytest.raises(ConfigError, match="frontend.n_levels 40 .*pyramid"):
+        VisualOdometry(Camera.preset("fr1"), OdometryConfig(frontend=FrontendConfig(n_levels=40, scale_factor=2.0)))
+    with pytest.raises(ConfigError, match="frontend.patch_size 240"):
+        VisualOdometry(Camera.preset("fr1"), OdometryConfig(frontend=FrontendConfig(patch_size=240)))
+    VisualOdometry(Camera.preset("fr1"), OdometryConfig(frontend=FrontendConfig(n_levels=9, scale_factor=2.0)))
+
+
+# -- the frame-level term of the covariance -------------------------------------------------------
+
+def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
+    """Frames 0, 1 and then 3 (frame 2 skipped): the pair (1, 3) spans two intervals, so its frame
+    term has twice the per-interval rotation variance and four times the translation variance;
+    the reported covariance is kappa times the estimator's plus that term."""
+    from covo_gtsam.calibration import ERROR_TERMS
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.odometry import OdometryConfig
+
+    seq = TumSequence(sample_dir)
+    # the frame term alone: no frame-level terms, no restamping by the frame clock
+    cfg = OdometryConfig().replace(sensor={"frame_clock": False, **{name: 0.0 for name in ERROR_TERMS.values()}})
+    vo = VisualOdometry(seq.camera, cfg)
+    steps = [vo.register_frame(*seq.load(i), seq.timestamps[i]) for i in (0, 1, 3)]
+    assert [s.status for s in steps] == ["first", "tracked", "tracked"]
+    for step, k in ((steps[1], 1), (steps[2], 2)):
+        assert cfg.frame_intervals(step.timestamp - step.ref_timestamp) == k
+        r2, t2 = np.deg2rad(cfg.sensor.frame_sigma_rot_deg) ** 2, cfg.sensor.frame_sigma_trans_m**2
+        frame = np.diag([r2 * k] * 3 + [t2 * k * k] * 3)
+        np.testing.assert_allclose(cfg.frame_noise(step.timestamp - step.ref_timestamp), frame, rtol=1e-12)
+        np.testing.assert_allclose(step.covariance, cfg.sensor.correlation_factor * step.result.covariance + frame,
+                                   rtol=1e-12)
+    assert cfg.frame_intervals(0.0) == 1 and cfg.frame_intervals(0.040) == 1 and cfg.frame_intervals(0.1) == 3
