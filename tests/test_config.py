@@ -58,8 +58,8 @@ def test_the_documentation_table_is_generated_from_the_declarations():
 
 def test_choices_are_strings_and_match_the_accepted_values():
     from covo_gtsam.estimator import ROBUST_KERNELS
-    from covo_gtsam.transfer import WEIGHTINGS
     from covo_gtsam.frontend import OUTLIER_REJECTIONS
+    from covo_gtsam.transfer import WEIGHTINGS
 
     assert tuple(Weighting) == WEIGHTINGS and (None, *RobustKernel) == ROBUST_KERNELS
     assert tuple(OutlierRejection) == OUTLIER_REJECTIONS

@@ -89,7 +89,8 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
     seq = TumSequence(sample_dir)
 
     def run(offset_s, factor):
-        vo = VisualOdometry("fr1", OdometryConfig().replace(noise={"depth_offset_factor": factor}, sensor={"frame_clock": False}))
+        vo = VisualOdometry("fr1", OdometryConfig().replace(noise={"depth_offset_factor": factor},
+                                                          sensor={"frame_clock": False}))
         steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.timestamps[i] + offset_s)
                  for i in range(4)]
         return steps[-1]
