@@ -57,12 +57,17 @@ class NoiseConfig:
 
     pixel_sigma: float = number(2.0, "standard deviation of the keypoints' image noise (conic-ray model); "
                                 "the thesis used 8", "px", minimum=MIN_PIXEL_SIGMA, maximum=MAX_PIXEL_SIGMA)
-    depth_sigma_scale: float = number(4.5, "multiplies the Kinect depth model's sigma_Z (1: the published model)",
+    depth_sigma_scale: float = number(2.0, "multiplies the Kinect depth model's sigma_Z (1: the published model)",
                                       "factor", minimum=1e-3, maximum=1e3)
     pixel_sigma_by_level: bool = flag(False, "multiply each keypoint's pixel noise by scale_factor^octave "
                                       "(its ORB pyramid level)")
     use_surface_angle: bool = flag(True, "depth noise grows with the surface's angle to the ray (from the depth "
                                    "image); false: angle 0")
+    depth_lookup_noise: bool = flag(True, "add to each depth variance how much the depth image changes within the "
+                                    "keypoint's pixel noise (large beside depth edges)")
+    depth_offset_factor: float = number(1.0, "the depth read also varies over the colour-depth offset under motion: "
+                                        "this times the stamped offset (0: off)", "factor", "non-negative",
+                                        maximum=100.0)
 
     def __post_init__(self) -> None:
         check_settings(self, self.section)
@@ -116,16 +121,16 @@ class SensorConfig:
     clock_window: int = integer(60, "stamps the frame clock is fitted to", 20, unit="frames")
     depth_time_compensation: bool = flag(False, "move each point along its ray to its colour image's time "
                                          "(depth images stamped apart from the colour images)")
-    correlation_factor: float = number(1.33, "kappa: multiplies the per-point covariance, for errors shared by the "
+    correlation_factor: float = number(1.32, "kappa: multiplies the per-point covariance, for errors shared by the "
                                        "points", "factor", maximum=MAX_SCALE)
     frame_sigma_rot_deg: float = number(0.105, "per-axis rotation error common to a pair, per frame interval "
                                         "(variance grows k times over k intervals)", "deg", "non-negative",
                                         maximum=180.0)
-    frame_sigma_trans_m: float = number(0.00085, "per-axis translation error common to a pair, per frame interval "
+    frame_sigma_trans_m: float = number(0.00101, "per-axis translation error common to a pair, per frame interval "
                                         "(variance grows k^2 times)", "m", "non-negative", maximum=1e3)
-    timing_sigma_s: float = number(0.00068, "a frame's capture-time error (frame-level term)", "s", "non-negative",
+    timing_sigma_s: float = number(0.00067, "a frame's capture-time error (frame-level term)", "s", "non-negative",
                                    maximum=1.0)
-    rolling_shutter_factor: float = number(1.2, "error of the rolling-shutter compensation's twist, times its "
+    rolling_shutter_factor: float = number(1.3, "error of the rolling-shutter compensation's twist, times its "
                                            "model (frame-level term)", "factor", "non-negative", maximum=100.0)
     stamp_jitter_s: float = number(0.002, "the stamps' jitter before the frame clock places them (frame-level "
                                    "term, a prior)", "s", "non-negative", maximum=1.0)

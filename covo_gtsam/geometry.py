@@ -165,3 +165,13 @@ def similarity_fit(
         return R, t, (float(s) if np.ndim(s) == 0 else s)
     t = ca - np.einsum("...ij,...j->...i", R, cb)
     return R, t, 1.0
+
+
+def image_velocities(X: np.ndarray, twist: np.ndarray, fx: float, fy: float) -> np.ndarray:
+    """Image-plane velocities (N, 2; px/s) of static points ``X`` (N, 3; camera frame, metres) seen
+    by a camera moving with body twist ``[omega, v]`` (rad/s, m/s); pinhole, no distortion."""
+    twist = np.asarray(twist, dtype=float).reshape(6)
+    Xd = -(np.cross(twist[:3], X) + twist[3:])
+    z = X[:, 2]
+    return np.stack([fx * (Xd[:, 0] * z - X[:, 0] * Xd[:, 2]) / z**2,
+                     fy * (Xd[:, 1] * z - X[:, 1] * Xd[:, 2]) / z**2], axis=1)

@@ -107,13 +107,16 @@ class PointNoiseModel:
     lateral: KinectLateralNoise | None = None
 
     def uvz_covariances(
-        self, z: np.ndarray, theta: np.ndarray | float = 0.0, pixel_scale: np.ndarray | float = 1.0
+        self, z: np.ndarray, theta: np.ndarray | float = 0.0, pixel_scale: np.ndarray | float = 1.0,
+        lookup_variance: np.ndarray | float = 0.0,
     ) -> np.ndarray:
         """Diagonal ``Q_uvz`` (N, 3, 3) of (4.10): pixel variances (px^2) and depth variance (m^2).
 
         ``pixel_scale`` multiplies the pixel standard deviations per point, e.g. the ORB pyramid
         scale ``scale_factor ** octave`` of each keypoint (a keypoint found on level L is
-        localised to about ``scale_factor ** L`` full-resolution pixels).
+        localised to about ``scale_factor ** L`` full-resolution pixels). ``lookup_variance`` (m^2,
+        per point) is added to the depth variance: the depth the image holds around the keypoint
+        (:func:`depth_lookup_variance`).
         """
         z = np.asarray(z, dtype=float)
         n = z.shape[0]
@@ -127,19 +130,19 @@ class PointNoiseModel:
         Q = np.zeros((n, 3, 3))
         Q[:, 0, 0] = var_u
         Q[:, 1, 1] = var_v
-        Q[:, 2, 2] = self.depth.sigma(z, theta) ** 2
+        Q[:, 2, 2] = self.depth.sigma(z, theta) ** 2 + lookup_variance
         return Q
 
     def point_covariances(
         self, camera: Camera, uv: np.ndarray, z: np.ndarray, theta: np.ndarray | float = 0.0,
-        pixel_scale: np.ndarray | float = 1.0,
+        pixel_scale: np.ndarray | float = 1.0, lookup_variance: np.ndarray | float = 0.0,
     ) -> np.ndarray:
         """Camera-frame covariances ``Q_xyz`` (N, 3, 3) in m^2 of points at undistorted ``uv``, depth ``z``.
 
         ``pixel_scale``: per-point factor on the pixel standard deviations (see :meth:`uvz_covariances`).
         """
         J = camera.backprojection_jacobian(uv, z)
-        return propagate(J, self.uvz_covariances(z, theta, pixel_scale))
+        return propagate(J, self.uvz_covariances(z, theta, pixel_scale, lookup_variance))
 
 
 def propagate(J: np.ndarray, Q: np.ndarray) -> np.ndarray:
@@ -184,3 +187,51 @@ def surface_angles(
     cosang = np.abs(np.einsum("ij,ij->i", normal, pc)) / np.where(ok, norm, 1.0)
     theta[ok] = np.arccos(np.clip(cosang[ok], 0.0, 1.0))
     return theta
+
+
+#: Gauss-Hermite quadrature of a standard normal with 5 nodes: the nonzero nodes and the weight of
+#: each sign (the centre node, weight 8/15, adds nothing to a variance about the centre)
+GAUSS_HERMITE_5 = ((1.3556261799742659, 0.2220759220056126), (2.8569700138728056, 0.011257411327720693))
+
+
+def depth_lookup_variance(depth: np.ndarray, uv: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Variance (m^2, N) of the depth read at keypoints ``uv`` (N, 2; pixels of the depth image
+    ``depth``, metres, 0 = none) whose true position is off by independent Gaussian errors with
+    standard deviations along the directions ``offsets`` (K, 2) or (K, N, 2) pixels.
+
+    Per direction ``o_k`` a 5-node Gauss-Hermite quadrature of the squared change of the
+    (nearest-pixel) depth: ``sum_j w_j [dZ(a_j o_k)^2 + dZ(-a_j o_k)^2]`` (:data:`GAUSS_HERMITE_5`),
+    summed over the directions. It is ``|o . grad Z|^2`` summed on a smooth surface and grows
+    with the chance that the lookup lands across a depth edge up to 2.9 sigma away. A node off the
+    image or without depth is no information: the other sign's value stands in for it.
+
+    On a real depth image the changes also hold the image's own noise between neighbouring pixels,
+    so the variance measures the local spread of the depth: shape and noise (docs/derivation.md)."""
+    uv = np.asarray(uv, dtype=float)
+    n = uv.shape[0]
+    offsets = np.asarray(offsets, dtype=float)
+    if offsets.ndim == 2:
+        offsets = np.broadcast_to(offsets[:, None, :], (offsets.shape[0], n, 2))
+    out = np.zeros(n)
+    if n == 0 or offsets.shape[0] == 0:
+        return out
+    h, w = depth.shape
+    ui = np.clip(np.floor(uv[:, 0] + 0.5).astype(np.intp), 0, w - 1)
+    vi = np.clip(np.floor(uv[:, 1] + 0.5).astype(np.intp), 0, h - 1)
+    zc = depth[vi, ui].astype(float)
+    for off in offsets:
+        for node, weight in GAUSS_HERMITE_5:
+            total = np.zeros(n)
+            count = np.zeros(n)
+            for sign in (node, -node):
+                with np.errstate(invalid="ignore"):
+                    u2 = np.floor(uv[:, 0] + sign * off[:, 0] + 0.5)
+                    v2 = np.floor(uv[:, 1] + sign * off[:, 1] + 0.5)
+                    on = np.isfinite(u2) & np.isfinite(v2) & (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
+                z2 = depth[np.where(on, v2, 0).astype(np.intp), np.where(on, u2, 0).astype(np.intp)].astype(float)
+                with np.errstate(invalid="ignore"):
+                    ok = on & np.isfinite(z2) & (z2 > 0)
+                total += np.where(ok, (z2 - zc) ** 2, 0.0)
+                count += ok
+            out += 2.0 * weight * np.where(count > 0, total / np.maximum(count, 1), 0.0)
+    return out

@@ -25,8 +25,10 @@ from .estimator import RelativePoseResult, estimate_relative_pose
 from .frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift, rolling_shutter_basis,
                            transfer_gains)
 from .datasets.images import to_grey
-from .frontend import FrameData, associate_frames, make_orb, prepare_frame
+from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
+from .geometry import image_velocities
 from .integrity import IntegrityScale, depth_free_check
+from .noise import depth_lookup_variance
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
 from .steps import POSED_STATUSES, DeprecatedStepAccess, OdometryStep, StepHistory, StepStatus
 
@@ -98,6 +100,7 @@ class VisualOdometry(DeprecatedStepAccess):
             to_grey(image), depth, self.camera, orb, self._noise, self.config.frontend,
             use_surface_angle=self.config.noise.use_surface_angle,
             pixel_sigma_by_level=self.config.noise.pixel_sigma_by_level,
+            depth_lookup_noise=self.config.noise.depth_lookup_noise,
         )
         frame.depth_offset = depth_offset
         return frame
@@ -256,7 +259,7 @@ class VisualOdometry(DeprecatedStepAccess):
         # time between the two captures: the stamps' difference corrected by the frame clock
         dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)
         try:
-            res, X_ref, X_cur = self._solve_pair(ref, ref_step, frame, pairs, dt)
+            res, X_ref, X_cur, pairs = self._solve_pair(ref, ref_step, frame, pairs, dt)
         except (EstimationError, InputError) as exc:  # InputError: e.g. points moved beyond range by compensation
             step.reason = str(exc)
             return step
@@ -276,19 +279,42 @@ class VisualOdometry(DeprecatedStepAccess):
         self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         return step
 
-    def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs, dt: float
-                    ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray]:
-        """``(result, X_ref, X_cur)``: the pair's relative pose, solved once and, with rolling-shutter
-        or depth-time compensation and motion (``dt > 0``), again on the points moved to their
-        frames' timestamps (the points of the last solve)."""
+    def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs: PointPairs, dt: float
+                    ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray, PointPairs]:
+        """``(result, X_ref, X_cur, pairs)``: the pair's relative pose, solved once and, with motion
+        (``dt > 0``), again on the points moved to their frames' timestamps (rolling shutter,
+        depth time) and with the depth-lookup variance of the colour-depth offsets (the points and
+        pairs of the last solve)."""
         X_ref, X_cur = pairs.X_ref, pairs.X_cur
         res = self._solve(X_ref, X_cur, pairs, None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
-        if dt > 0 and (self.config.sensor.rolling_shutter_s > 0 or self.config.sensor.depth_time_compensation):
+        if dt > 0 and (self.config.sensor.rolling_shutter_s > 0 or self.config.sensor.depth_time_compensation
+                       or (self.config.noise.depth_offset_factor > 0 and (ref.depth_offset or frame.depth_offset))):
             twist_ref, twist_cur = frame_twists(res.pose, dt, ref_step.velocity)
+            pairs = self._with_offset_noise(pairs, ref, frame, twist_ref, twist_cur)
             X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
             X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
             res = self._solve(X_ref, X_cur, pairs, res.pose)
-        return res, X_ref, X_cur
+        return res, X_ref, X_cur, pairs
+
+    def _with_offset_noise(self, pairs: PointPairs, ref: FrameData, frame: FrameData, twist_ref: np.ndarray,
+                           twist_cur: np.ndarray) -> PointPairs:
+        """``pairs`` with each point's covariance grown by what its depth image changes over the
+        frame's colour-depth offset (``noise.depth_offset_factor`` times the stamped one): the depth
+        image saw the scene shifted by the point's image velocity times the offset, so the depth
+        read at the colour keypoint may belong to a neighbouring surface
+        (:func:`~covo_gtsam.noise.depth_lookup_variance`; added along the viewing ray)."""
+        c = self.config.noise.depth_offset_factor
+        Q = []
+        for fd, X, uv, Q_f, twist in ((ref, pairs.X_ref, pairs.uv_ref, pairs.Q_ref, twist_ref),
+                                      (frame, pairs.X_cur, pairs.uv_cur, pairs.Q_cur, twist_cur)):
+            if not (c > 0 and fd.depth_offset):
+                Q.append(Q_f)
+                continue
+            shift = image_velocities(X, twist, self.camera.fx, self.camera.fy) * (c * fd.depth_offset)
+            ray = X / X[:, 2:3]
+            Q.append(Q_f + depth_lookup_variance(fd.depth, uv, shift[None])[:, None, None]
+                     * ray[:, :, None] * ray[:, None, :])
+        return replace(pairs, Q_ref=Q[0], Q_cur=Q[1])
 
     def _implausible(self, T: gtsam.Pose3) -> str:
         """Why ``T_ref,cur`` is not accepted (it moves more than the tracking limits), or ``""``."""

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..noise import PointNoiseModel, surface_angles
+from ..noise import PointNoiseModel, depth_lookup_variance, surface_angles
 from .matching import Features, detect
 from .settings import FrontendConfig
 
@@ -96,6 +96,7 @@ def prepare_frame(
     cfg: FrontendConfig | None = None,
     use_surface_angle: bool = True,
     pixel_sigma_by_level: bool = False,
+    depth_lookup_noise: bool = False,
 ) -> FrameData:
     """Features, registered depth, 3D points and their covariances of one frame.
 
@@ -110,6 +111,9 @@ def prepare_frame(
             otherwise theta = 0.
         pixel_sigma_by_level: scale each keypoint's pixel noise by ``cfg.scale_factor ** octave``
             (its ORB pyramid level); otherwise every keypoint has the model's pixel noise.
+        depth_lookup_noise: add to each depth variance how much the depth image changes within the
+            keypoint's pixel noise along each image axis (:func:`covo_gtsam.noise.depth_lookup_variance`):
+            large beside depth edges.
     """
     cfg = cfg or FrontendConfig()
     noise_model = noise_model or PointNoiseModel()
@@ -137,7 +141,13 @@ def prepare_frame(
     if vi.shape[0]:
         points[vi] = camera.backproject(uv_u, z_v)
         scale = cfg.scale_factor ** feats.octave[vi] if pixel_sigma_by_level else 1.0
-        covs[vi] = noise_model.point_covariances(camera, uv_u, z_v, theta_v, scale)
+        lookup = 0.0
+        if depth_lookup_noise:
+            s = np.broadcast_to(np.asarray(scale, dtype=float), z_v.shape)
+            zero = np.zeros_like(s)
+            lookup = depth_lookup_variance(depth_m, uv_v, np.stack([np.stack([noise_model.pixel.sigma_u * s, zero], 1),
+                                                                     np.stack([zero, noise_model.pixel.sigma_v * s], 1)]))
+        covs[vi] = noise_model.point_covariances(camera, uv_u, z_v, theta_v, scale, lookup)
         uv_und[vi] = uv_u
         theta[vi] = theta_v
     return FrameData(
