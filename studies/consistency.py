@@ -35,7 +35,8 @@ SIM_VARIANTS = {
 POINTS_ONLY = {"sensor": dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
                               **{name: 0.0 for name in ERROR_TERMS.values()})}
 #: the thesis's real-data setting: 8 px, its weighting, the published depth model, nothing else
-THESIS_MODEL = {"noise": dict(pixel_sigma=8.0, depth_sigma_scale=1.0, depth_lookup_noise=False, depth_offset_factor=0.0),
+THESIS_MODEL = {"noise": dict(pixel_sigma=8.0, depth_sigma_scale=1.0, depth_lookup_noise=False,
+                              depth_offset_factor=0.0),
                 "estimator": dict(weighting="thesis"),
                 "sensor": dict(POINTS_ONLY["sensor"], rolling_shutter_s=0.0)}
 

@@ -196,8 +196,10 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     # 39 consecutive pairs, less the 19 that touch the first 20 frames (not yet placed by the frame
     # clock) and those the integrity check flagged
     assert 39 - 19 - run["flagged_pairs"] <= s["pairs"] <= 20
-    # the per-point model alone is too confident on real data (ANEES well above 3); the fit inflates it
-    assert min(s["per_point_model_anees"]) > 6 and s["correlation_factor"] > 1
+    # the per-point model alone is too confident on real data (ANEES well above 3); the fit inflates
+    # it, here mostly through the frame term (kappa alone is 0.8 on these 20 pairs; 1.32 on frames 0-119
+    # of the shared fr1_rpy frames)
+    assert min(s["per_point_model_anees"]) > 6 and 0.3 < s["correlation_factor"] < 3
     assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 < s["frame_sigma_trans_m"] < 0.01
     printed = capsys.readouterr().out.splitlines()
     lines = [ln for ln in printed if ln.split(" = ")[0].isidentifier()]

@@ -183,6 +183,10 @@ def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys)
     rs = RosbagSequence(bag)
     assert rs.gt_valid.all()
     np.testing.assert_allclose(rs.groundtruth, seq.groundtruth[:N], atol=1e-6)
+    # the colour-depth offsets the run uses come from the depth messages' own stamps, as from depth.txt
+    # (tens of microseconds in these frames: a bag without them would fail this)
+    np.testing.assert_allclose(rs.depth_timestamps - rs.timestamps, seq.depth_timestamps[:N] - seq.timestamps[:N],
+                               atol=1e-6)
     _run(["run", str(bag), "--out", str(tmp_path / "bag_out"), "--bag-out", "ros1"])
     _run(["run", str(ref), "--out", str(tmp_path / "ref_out")])
     _same_trajectory(tmp_path / "ref_out", tmp_path / "bag_out")

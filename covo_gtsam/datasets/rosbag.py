@@ -224,6 +224,8 @@ class RosbagSequence:
         self._rgb_index = np.array([i for i, _ in pairs], dtype=int)
         self._depth_index = np.array([j for _, j in pairs], dtype=int)
         self.timestamps = self._rgb_t[self._rgb_index]
+        #: the associated depth images' stamps (s): the run takes each frame's colour-depth offset from them
+        self.depth_timestamps = self._depth_t[self._depth_index]
         self.camera_frame = frame_id.lstrip("/") or "camera"
         self.gt_frame = (gt_frame or self.camera_frame).lstrip("/")
         self.groundtruth = None
@@ -355,6 +357,7 @@ class RosbagSequence:
         part = copy.copy(self)
         part._rgb_index, part._depth_index = self._rgb_index[start:stop], self._depth_index[start:stop]
         part.timestamps = self.timestamps[start:stop]
+        part.depth_timestamps = self.depth_timestamps[start:stop]
         part.gt_valid = self.gt_valid[start:stop]
         part.groundtruth = None if self.groundtruth is None else self.groundtruth[start:stop]
         return part
