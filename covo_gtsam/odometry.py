@@ -281,20 +281,26 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs: PointPairs, dt: float
                     ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray, PointPairs]:
-        """``(result, X_ref, X_cur, pairs)``: the pair's relative pose, solved once and, with motion
-        (``dt > 0``), again on the points moved to their frames' timestamps (rolling shutter,
-        depth time) and with the depth-lookup variance of the colour-depth offsets (the points and
-        pairs of the last solve)."""
+        """``(result, X_ref, X_cur, pairs)``: the pair's relative pose. With motion (``dt > 0``) the
+        points are moved to their frames' timestamps (rolling shutter, depth time) and get the
+        depth-lookup variance of the colour-depth offsets, both from the camera's twists at the two
+        frames; the twists come from the outlier rejection's pose (``pairs.T_init``) and the pair is
+        solved once. Without such a pose (e.g. ``outlier_rejection = "none"`` and no prediction)
+        the pair is solved on the unmoved points, the twists are taken from that solution and it is
+        solved again. The points and pairs returned are those of the last solve."""
         X_ref, X_cur = pairs.X_ref, pairs.X_cur
-        res = self._solve(X_ref, X_cur, pairs, None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
-        if dt > 0 and (self.config.sensor.rolling_shutter_s > 0 or self.config.sensor.depth_time_compensation
-                       or (self.config.noise.depth_offset_factor > 0 and (ref.depth_offset or frame.depth_offset))):
-            twist_ref, twist_cur = frame_twists(res.pose, dt, ref_step.velocity)
+        initial = None if pairs.T_init is None else gtsam.Pose3(pairs.T_init)
+        compensate = dt > 0 and (
+            self.config.sensor.rolling_shutter_s > 0 or self.config.sensor.depth_time_compensation
+            or (self.config.noise.depth_offset_factor > 0 and (ref.depth_offset or frame.depth_offset)))
+        if compensate and initial is None:
+            initial = self._solve(X_ref, X_cur, pairs, None).pose
+        if compensate:
+            twist_ref, twist_cur = frame_twists(initial, dt, ref_step.velocity)
             pairs = self._with_offset_noise(pairs, ref, frame, twist_ref, twist_cur)
             X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
             X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
-            res = self._solve(X_ref, X_cur, pairs, res.pose)
-        return res, X_ref, X_cur, pairs
+        return self._solve(X_ref, X_cur, pairs, initial), X_ref, X_cur, pairs
 
     def _with_offset_noise(self, pairs: PointPairs, ref: FrameData, frame: FrameData, twist_ref: np.ndarray,
                            twist_cur: np.ndarray) -> PointPairs:

@@ -109,3 +109,35 @@ def test_odometry_compensation_on_real_frames(sample_dir):
         moved = np.linalg.norm(gtsam.Rot3.Logmap(off.relative.rotation().between(on.relative.rotation())))
         motion = np.linalg.norm(gtsam.Rot3.Logmap(on.relative.rotation()))
         assert 0 < moved < 0.2 * motion
+
+
+
+def test_odometry_compensates_with_the_ransac_pose_in_one_solve(sample_dir, monkeypatch):
+    """With the outlier rejection's pose the twists come from it and each pair is solved once;
+    without one (``outlier_rejection = "none"``, no prediction) the pair is solved, moved with that
+    solution's twists and solved again. The points and pairs returned are those of the last solve
+    (with the depth-lookup variance of the colour-depth offset)."""
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.frontend import associate_frames
+    from covo_gtsam.odometry import OdometryConfig, VisualOdometry
+
+    seq = TumSequence(sample_dir)
+
+    def solve_pair(rejection):
+        vo = VisualOdometry(seq.camera, OdometryConfig().replace(frontend={"outlier_rejection": rejection}))
+        ref, cur = (vo.prepare(*seq.load(i), depth_offset=0.02) for i in range(2))
+        ref_step = vo.register_frame(ref, timestamp=seq.timestamps[0])
+        calls, solve = [], vo._solve
+        monkeypatch.setattr(vo, "_solve", lambda X_ref, X_cur, pairs, initial: calls.append(
+            (X_ref, pairs, initial)) or solve(X_ref, X_cur, pairs, initial))
+        pairs = associate_frames(ref, cur, vo.config.frontend)
+        return pairs, vo._solve_pair(ref, ref_step, cur, pairs, seq.timestamps[1] - seq.timestamps[0]), calls
+
+    pairs, (_, X_ref, _, solved), calls = solve_pair("rigid3d")
+    assert len(calls) == 1 and calls[0][2] is not None  # one solve, from the RANSAC's pose
+    assert calls[0][0] is X_ref and calls[0][1] is solved
+    assert not np.array_equal(X_ref, pairs.X_ref) and np.all(solved.Q_ref[:, 2, 2] >= pairs.Q_ref[:, 2, 2])
+    pairs, (_, X_ref, _, solved), calls = solve_pair("none")
+    assert pairs.T_init is None and len(calls) == 2 and calls[0][2] is None and calls[1][2] is not None
+    assert calls[0][1] is pairs and calls[1][0] is X_ref and calls[1][1] is solved
+    assert not np.array_equal(X_ref, pairs.X_ref) and np.any(solved.Q_ref != pairs.Q_ref)
