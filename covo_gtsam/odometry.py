@@ -249,7 +249,8 @@ class VisualOdometry(DeprecatedStepAccess):
         """The pair (``ref``, ``frame``): matched point pairs, relative pose, covariance, integrity
         check, pose (a lost step with the reason when a stage fails)."""
         guess = self.predict(ref_step, timestamp)
-        pairs = associate_frames(ref, frame, self.config.frontend, None if guess is None else guess.matrix())
+        pairs = associate_frames(ref, frame, self.config.frontend, None if guess is None else guess.matrix(),
+                                 self.camera)
         step = OdometryStep(timestamp, StepStatus.LOST, ref_timestamp=ref_step.timestamp,
                             num_matches=pairs.num_matches, num_pairs=pairs.num_inliers)
         min_pairs = self.config.frontend.min_pairs

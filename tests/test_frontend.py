@@ -505,3 +505,87 @@ def test_associate_frames_other_rejections(frames):
     assert rigid.num_matches == none.num_matches and rigid.num_inliers < rigid.num_matches
     pairs_rigid = set(zip(rigid.idx_ref.tolist(), rigid.idx_cur.tolist()))
     assert pairs_rigid <= set(zip(none.idx_ref.tolist(), none.idx_cur.tolist()))
+
+
+def _guided_brute_force(fa, uv_pred, fb, uv_b, cell, hamming2=False):
+    """Cross-check over the pairs whose cells touch (the definition of guided_cross_check)."""
+    D = fe.hamming_distances(fa, fb, hamming2).astype(np.int64)
+    g0 = np.floor(uv_b.min(axis=0) / cell)
+    a_cell, b_cell = np.floor(uv_pred / cell) - g0, np.floor(uv_b / cell) - g0
+    near = np.all(np.abs(a_cell[:, None, :] - b_cell[None, :, :]) <= 1, axis=2)
+    Dm = np.where(near, D, 10**6)
+    fwd, bwd = Dm.argmin(axis=1), Dm.argmin(axis=0)
+    ia = np.flatnonzero((bwd[fwd] == np.arange(len(fwd))) & (Dm[np.arange(len(fwd)), fwd] < 10**6))
+    return ia, fwd[ia], D[ia, fwd[ia]]
+
+
+@pytest.mark.parametrize("cell", [16.0, 32.0, 75.0])
+@pytest.mark.parametrize("hamming2", [False, True])
+def test_guided_cross_check_equals_cross_check_over_neighbouring_cells(frames, cell, hamming2):
+    ref, cur = frames[0], frames[1]
+    rng = np.random.default_rng(3)
+    uv_pred = ref.uv_undistorted[ref.valid_index] + rng.normal(0.0, 20.0, (ref.num_valid, 2))
+    uv_pred[:5] = np.nan  # not in front of the camera
+    uv_pred[5:10] += 900.0  # far off the image
+    uv_b = cur.uv_undistorted[cur.valid_index]
+    got = fe.guided_cross_check(ref.valid_features, uv_pred, cur.valid_features, uv_b, cell, hamming2)
+    want = _guided_brute_force(ref.valid_features, uv_pred, cur.valid_features, uv_b, cell, hamming2)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+    assert got[0].shape[0] > 50 and not np.isin(np.arange(10), got[0]).any()
+    assert got[0].dtype == np.intp and got[1].dtype == np.intp and got[2].dtype == np.uint16
+
+
+def test_guided_cross_check_with_one_cell_is_cross_check(frames):
+    ref, cur = frames[0], frames[1]
+    got = fe.guided_cross_check(ref.valid_features, ref.uv_undistorted[ref.valid_index], cur.valid_features,
+                                cur.uv_undistorted[cur.valid_index], 1e4)
+    for g, w in zip(got, fe.cross_check_matches(ref.valid_features, cur.valid_features)):
+        np.testing.assert_array_equal(g, w)
+
+
+def test_guided_cross_check_inputs():
+    fa, fb, _ = _flipped_pairs(20)
+    uv = np.random.default_rng(0).uniform(0, 100, (20, 2))
+    with pytest.raises(InputError):
+        fe.guided_cross_check(fa, uv[:10], fb, uv, 10.0)
+    with pytest.raises(InputError):
+        fe.guided_cross_check(fa, uv, fb, uv, 0.0)
+    bad = uv.copy()
+    bad[0] = np.nan
+    with pytest.raises(InputError):
+        fe.guided_cross_check(fa, uv, fb, bad, 10.0)
+    none = fe.guided_cross_check(fa, np.full((20, 2), np.nan), fb, uv, 10.0)
+    assert all(x.shape == (0,) for x in none)
+    empty = fe.guided_cross_check(fa.subset(np.zeros(20, bool)), np.zeros((0, 2)), fb, uv, 10.0)
+    assert all(x.shape == (0,) for x in empty)
+
+
+def test_associate_frames_guided_by_a_prediction(frames, seq, camera):
+    ref, cur = frames[0], frames[1]
+    cfg = fe.FrontendConfig()
+    full = fe.associate_frames(ref, cur, cfg)
+    # a good prediction: guided matching finds about the same inliers
+    good = fe.associate_frames(ref, cur, cfg, full.T_init, camera)
+    assert good.num_inliers >= 0.9 * full.num_inliers
+    err = invert_pose(full.T_init) @ good.T_init
+    assert np.rad2deg(rotation_angle(err[:3, :3])) < 0.5 and np.linalg.norm(err[:3, 3]) < 0.01
+    # a wrong prediction (the camera turned 15 degrees the other way): matched again over all pairs
+    wrong = full.T_init @ make_pose(quat_to_matrix(np.array([0.0, np.sin(np.deg2rad(7.5)), 0.0,
+                                                             np.cos(np.deg2rad(7.5))])), np.zeros(3))
+    uv = fe.predicted_pixels(ref, wrong, camera)
+    assert np.nanmedian(np.linalg.norm(uv - ref.uv_undistorted[ref.valid_index], axis=1)) > 100
+    rescued = fe.associate_frames(ref, cur, cfg, wrong, camera)
+    assert rescued.num_inliers >= 0.9 * full.num_inliers
+    # with outlier_rejection "none" nothing could tell a wrong prediction: not guided
+    none = fe.FrontendConfig(outlier_rejection="none")
+    np.testing.assert_array_equal(fe.associate_frames(ref, cur, none, wrong, camera).idx_ref,
+                                  fe.associate_frames(ref, cur, none).idx_ref)
+
+
+def test_predicted_pixels_project_the_reference_points(frames, camera):
+    ref = frames[0]
+    uv = fe.predicted_pixels(ref, np.eye(4), camera)
+    np.testing.assert_allclose(uv, ref.uv_undistorted[ref.valid_index], atol=1e-6)
+    behind = make_pose(np.diag([1.0, -1.0, -1.0]), np.zeros(3))  # turned around: every point behind
+    assert np.isnan(fe.predicted_pixels(ref, behind, camera)).all()

@@ -11,6 +11,9 @@
    cross-check among keypoints with valid depth (``np.bitwise_count`` (a 16-bit lookup table on
    numpy < 2) on XORed uint64 descriptor words; same matches as
    ``cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)``), then the best ``keep_ratio`` by distance.
+   Given a predicted motion (the odometry's constant-velocity prediction) and the camera, only
+   keypoints near their predicted pixel are compared (:func:`guided_cross_check`), with a
+   fall-back to all pairs when the prediction was wrong (:func:`associate_frames`).
 4. 3-D points with covariances (:mod:`~covo_gtsam.frontend.points`, :func:`prepare_frame`):
    nearest-pixel depth at the *measured* keypoint (:func:`lookup_depth`), back-projection of the
    *undistorted* keypoint and its 3x3 covariance from the point noise model.
@@ -33,15 +36,17 @@ The front end imports no GTSAM (the transfer maths of the RANSAC is :mod:`covo_g
 
 from .matching import (
     DESCRIPTOR_BYTES,
+    GUIDED_CELL_PX,
     MATCH_BLOCK_ENTRIES,
     Features,
     cross_check_matches,
     detect,
+    guided_cross_check,
     hamming_distances,
     keep_best,
     match,
 )
-from .pairs import PointPairs, associate_frames
+from .pairs import GUIDED_MIN_SHARE, PointPairs, associate_frames, predicted_pixels
 from .points import FrameData, lookup_depth, prepare_frame
 from .ransac import (
     RANSAC_BATCH,
@@ -70,13 +75,13 @@ __all__ = [
     "FrontendConfig", "make_orb", "OUTLIER_REJECTIONS", "CHI2_3DOF_99", "RANSAC_ITERATIONS", "MAX_FEATURES",
     "MAX_LEVELS", "MAX_PATCH_SIZE", "MAX_RANSAC_ITERATIONS",
     # features and matches
-    "Features", "detect", "hamming_distances", "cross_check_matches", "keep_best", "match", "DESCRIPTOR_BYTES",
-    "MATCH_BLOCK_ENTRIES",
+    "Features", "detect", "hamming_distances", "cross_check_matches", "keep_best", "match", "guided_cross_check",
+    "DESCRIPTOR_BYTES", "MATCH_BLOCK_ENTRIES", "GUIDED_CELL_PX",
     # 3-D points
     "FrameData", "prepare_frame", "lookup_depth",
     # RANSAC
     "RansacResult", "ransac_rigid3d", "ransac_homography", "required_samples", "sample_triples", "RANSAC_CHUNK",
     "RANSAC_BATCH", "RANSAC_CONFIDENCE",
     # point pairs
-    "PointPairs", "associate_frames",
+    "PointPairs", "associate_frames", "predicted_pixels", "GUIDED_MIN_SHARE",
 ]

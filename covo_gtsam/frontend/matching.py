@@ -4,7 +4,8 @@ brute-force Hamming matching with cross-check (:func:`match`).
 Distances are ``np.bitwise_count`` (a 16-bit lookup table on numpy < 2) on XORed uint64 descriptor
 words, computed block by block (:func:`cross_check_matches`); the matches are those of
 ``cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)``, of which the best ``keep_ratio`` by distance
-are kept (:func:`keep_best`).
+are kept (:func:`keep_best`). Given where each keypoint is expected in the other image (a
+predicted motion), :func:`guided_cross_check` compares only keypoints near their predicted pixel.
 """
 
 from __future__ import annotations
@@ -16,12 +17,16 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from ..validation import is_real
 
 #: ORB descriptor length in bytes (256 bits = 4 uint64 words).
 DESCRIPTOR_BYTES = 32
 #: Entries of the Hamming distance matrix computed at a time (a block of rows; bounds scratch
 #: memory to about 11 bytes per entry).
 MATCH_BLOCK_ENTRIES = 1 << 20
+#: Cell size (pixels) of guided matching (:func:`guided_cross_check`): a keypoint is compared with
+#: those in its predicted cell and the 8 around it, so at least with those within this distance.
+GUIDED_CELL_PX = 32.0
 
 
 @dataclass
@@ -205,6 +210,87 @@ def cross_check_matches(
         bwd[better] = i[better] + s
     idx_a = np.flatnonzero(bwd[fwd] == np.arange(na))
     return idx_a, fwd[idx_a], fwd_d[idx_a]
+
+
+def guided_cross_check(
+    f_a: Features | np.ndarray, uv_pred: np.ndarray, f_b: Features | np.ndarray, uv_b: np.ndarray,
+    cell: float = GUIDED_CELL_PX, hamming2: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`cross_check_matches` among the pairs that a predicted motion allows: ``(idx_a, idx_b, dist)``.
+
+    ``uv_pred`` (Na, 2) are the pixels where the keypoints of ``f_a`` are expected in the image of
+    ``f_b``, whose keypoints are at ``uv_b`` (Nb, 2). The plane is cut into square cells of
+    ``cell`` pixels; keypoint i of ``f_a`` and keypoint j of ``f_b`` are compared when the cell of
+    ``uv_pred[i]`` and the cell of ``uv_b[j]`` touch (same cell or one of its 8 neighbours), so each
+    keypoint meets at least those within ``cell`` pixels of its prediction. The mutual-best test is
+    that of :func:`cross_check_matches` (ties to the lowest index) over the compared pairs; a
+    keypoint with a non-finite prediction is compared with none.
+    """
+    a, b = _as_words(f_a), _as_words(f_b)
+    na, nb = a.shape[0], b.shape[0]
+    uv_pred = np.asarray(uv_pred, dtype=float).reshape(-1, 2)
+    uv_b = np.asarray(uv_b, dtype=float).reshape(-1, 2)
+    if uv_pred.shape[0] != na or uv_b.shape[0] != nb:
+        raise InputError(f"guided matching needs one pixel per keypoint; got {uv_pred.shape[0]} for {na} and "
+                         f"{uv_b.shape[0]} for {nb}")
+    if not (is_real(cell) and cell > 0 and math.isfinite(cell)):
+        raise InputError(f"the cell size must be a positive number of pixels, got {cell!r}")
+    if not np.all(np.isfinite(uv_b)):
+        raise InputError("guided matching needs finite pixels of the keypoints it matches against")
+    empty = (np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0, np.uint16))
+    if na == 0 or nb == 0:
+        return empty
+    # cells of f_b's keypoints, and f_b sorted by cell (row-major: a row of cells is contiguous)
+    gx0, gy0 = np.floor(uv_b.min(axis=0) / cell) - 1
+    bx = (np.floor(uv_b[:, 0] / cell) - gx0).astype(np.intp)
+    by = (np.floor(uv_b[:, 1] / cell) - gy0).astype(np.intp)
+    nx, ny = int(bx.max()) + 2, int(by.max()) + 2
+    order = np.argsort(by * nx + bx, kind="stable").astype(np.int32)
+    start = np.zeros(nx * ny + 1, np.intp)
+    np.cumsum(np.bincount(by * nx + bx, minlength=nx * ny), out=start[1:])
+    # each keypoint of f_a: its cell's three rows of three cells among f_b's
+    with np.errstate(invalid="ignore"):
+        px = np.floor(uv_pred[:, 0] / cell) - gx0
+        py = np.floor(uv_pred[:, 1] / cell) - gy0
+        near = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)  # else no cell of f_b's touches it
+    ia = np.flatnonzero(near).astype(np.int32)
+    if ia.shape[0] == 0:
+        return empty
+    px, py = px[ia].astype(np.intp), py[ia].astype(np.intp)
+    x0, x1 = np.maximum(px - 1, 0), np.minimum(px + 1, nx - 1)
+    rows = np.clip(py[:, None] + np.arange(-1, 2), 0, ny - 1)
+    lo = start[rows * nx + x0[:, None]]
+    hi = start[rows * nx + x1[:, None] + 1]
+    hi[:, 0] = np.where(py > 0, hi[:, 0], lo[:, 0])  # the clipped rows would repeat a row
+    hi[:, 2] = np.where(py < ny - 1, hi[:, 2], lo[:, 2])
+    counts = (hi - lo).ravel()
+    total = int(counts.sum())
+    if total == 0:
+        return empty
+    # the compared pairs, grouped by i (ascending), j in cell order
+    first = np.cumsum(counts) - counts
+    ii = np.repeat(np.repeat(ia, 3), counts)
+    jj = np.take(order, np.arange(total, dtype=np.intp) + np.repeat(lo.ravel() - first, counts))
+    x = np.take(a, ii, axis=0)
+    x ^= np.take(b, jj, axis=0)
+    if hamming2:
+        np.bitwise_or(x, x >> np.uint64(1), out=x)
+        np.bitwise_and(x, _HAMMING2_MASK, out=x)
+    c = _bitcount(x, np.empty(x.shape, np.uint8))
+    d = np.add(c[:, 0], c[:, 1]).astype(np.int64)  # at most 256: int64 keys (distance, index)
+    d += c[:, 2]
+    d += c[:, 3]
+    d <<= 32
+    # forward: the best (distance, j) per i; backward: the best (distance, i) per j
+    per_i = counts.reshape(-1, 3).sum(axis=1)
+    has = per_i > 0
+    best_j = np.minimum.reduceat(d | jj, (np.cumsum(per_i) - per_i)[has])
+    best_i = np.full(nb, np.iinfo(np.int64).max, np.int64)
+    np.minimum.at(best_i, jj, d | ii)
+    i_has = ia[has]
+    j_best = (best_j & 0xFFFFFFFF).astype(np.intp)
+    mutual = (best_i[j_best] & 0xFFFFFFFF) == i_has
+    return i_has[mutual].astype(np.intp), j_best[mutual], (best_j[mutual] >> 32).astype(np.uint16)
 
 
 def keep_best(dist: np.ndarray, keep_ratio: float, max_hamming: int | None = None) -> np.ndarray:

@@ -1,5 +1,8 @@
 """Point pairs of a frame pair (:func:`associate_frames`): matches among the keypoints with valid
-depth, then outlier rejection by ``FrontendConfig.outlier_rejection``.
+depth, then outlier rejection by ``FrontendConfig.outlier_rejection``. Given a predicted motion
+(the odometry's constant-velocity prediction) and the camera, only keypoints near their predicted
+pixel are compared (:func:`~covo_gtsam.frontend.matching.guided_cross_check`), with a fall-back to
+all pairs when the prediction was wrong.
 """
 
 from __future__ import annotations
@@ -8,10 +11,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .matching import match
+from ..camera import Camera
+from .matching import GUIDED_CELL_PX, guided_cross_check, keep_best, match
 from .points import FrameData
 from .ransac import ransac_homography, ransac_rigid3d
 from .settings import FrontendConfig
+
+#: Guided matches are kept when at least this share of them are inliers (and ``2 * min_pairs``);
+#: else the frames are matched again over all pairs (:func:`associate_frames`).
+GUIDED_MIN_SHARE = 0.5
 
 
 @dataclass
@@ -50,8 +58,20 @@ class PointPairs:
         return int(self.X_ref.shape[0])
 
 
+def predicted_pixels(ref: FrameData, prior: np.ndarray, camera: Camera) -> np.ndarray:
+    """Undistorted pixels (valid keypoints of ``ref``, 2) where ``ref``'s points appear in the current
+    image under the predicted ``prior`` (4x4 ``T_ref,cur``); NaN for points not in front of the camera."""
+    T = np.asarray(prior, dtype=float)
+    X = (ref.points[ref.valid_index] - T[:3, 3]) @ T[:3, :3]  # R^T (X_ref - t)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([camera.fx * X[:, 0] / X[:, 2] + camera.cx, camera.fy * X[:, 1] / X[:, 2] + camera.cy], axis=1)
+    uv[~(X[:, 2] > 1e-6)] = np.nan
+    return uv
+
+
 def associate_frames(
-    ref: FrameData, cur: FrameData, cfg: FrontendConfig | None = None, prior: np.ndarray | None = None
+    ref: FrameData, cur: FrameData, cfg: FrontendConfig | None = None, prior: np.ndarray | None = None,
+    camera: Camera | None = None,
 ) -> PointPairs:
     """Point pairs of a reference frame k and the current frame k+1.
 
@@ -59,10 +79,36 @@ def associate_frames(
     optional ``max_hamming``); outliers are then rejected by ``cfg.outlier_rejection``.
     ``prior`` (4x4 predicted ``T_ref,cur``, optional) is an extra rigid-RANSAC hypothesis and,
     with the other outlier rejections, the initial guess ``T_init`` of the pose.
+
+    With ``prior`` and the ``camera`` of the frames (and an outlier rejection other than
+    ``"none"``), the matching is guided: a reference keypoint is compared only with the current
+    keypoints near where ``prior`` puts it (:func:`predicted_pixels`,
+    :func:`~covo_gtsam.frontend.matching.guided_cross_check`, cells of
+    :data:`~covo_gtsam.frontend.matching.GUIDED_CELL_PX`). When the prediction was wrong (fewer
+    than ``2 * min_pairs`` inliers, or fewer than :data:`GUIDED_MIN_SHARE` of the matches), the
+    frames are matched again over all pairs and the result with more inliers is kept.
     """
     cfg = cfg or FrontendConfig()
-    ia, ib, dist = match(ref.valid_features, cur.valid_features, cfg.keep_ratio, cfg.max_hamming,
-                         hamming2=cfg.wta_k > 2)
+    hamming2 = cfg.wta_k > 2
+    if prior is not None and camera is not None and cfg.outlier_rejection != "none":
+        ia, ib, dist = guided_cross_check(ref.valid_features, predicted_pixels(ref, prior, camera),
+                                          cur.valid_features, cur.uv_undistorted[cur.valid_index],
+                                          GUIDED_CELL_PX, hamming2)
+        keep = keep_best(dist, cfg.keep_ratio, cfg.max_hamming)
+        guided = _matched_pairs(ref, cur, cfg, prior, ia[keep], ib[keep], dist[keep])
+        if guided.num_inliers >= max(2 * cfg.min_pairs, GUIDED_MIN_SHARE * guided.num_matches):
+            return guided
+    else:
+        guided = None
+    ia, ib, dist = match(ref.valid_features, cur.valid_features, cfg.keep_ratio, cfg.max_hamming, hamming2=hamming2)
+    pairs = _matched_pairs(ref, cur, cfg, prior, ia, ib, dist)
+    return guided if guided is not None and guided.num_inliers > pairs.num_inliers else pairs
+
+
+def _matched_pairs(ref: FrameData, cur: FrameData, cfg: FrontendConfig, prior: np.ndarray | None, ia: np.ndarray,
+                   ib: np.ndarray, dist: np.ndarray) -> PointPairs:
+    """:func:`associate_frames` after matching: the matches ``(ia, ib, dist)`` (indices into the
+    frames' valid features) through the outlier rejection."""
     idx_ref = ref.valid_index[ia]
     idx_cur = cur.valid_index[ib]
     num_matches = int(idx_ref.shape[0])
