@@ -124,9 +124,9 @@ def ransac_rigid3d(
     All ``iterations`` samples are drawn at once (3 distinct pairs each, from
     ``np.random.default_rng(seed)``, so a given seed always gives the same result). Samples whose
     pairwise distances differ between the frames beyond their noise are dropped
-    (:func:`_rigid_consistent`); the rest are fitted with the batched :func:`rigid_fit` and
-    scored on every pair, :data:`RANSAC_BATCH` samples at a time, with
-    ``r^T (Q_ref + R Q_cur R^T)^-1 r < chi2``, ``r = X_ref - (R X_cur + t)``. The hypothesis with
+    (:func:`_rigid_consistent`, tested batch by batch as the samples are used); the rest are
+    fitted with the batched :func:`rigid_fit` and scored on every pair, :data:`RANSAC_BATCH`
+    samples at a time, with ``r^T (Q_ref + R Q_cur R^T)^-1 r < chi2``, ``r = X_ref - (R X_cur + t)``. The hypothesis with
     the most inliers (ties: smallest summed Mahalanobis distance of its inliers) is then refitted
     on its inliers (weights ``1 / trace(Q_ref + Q_cur)``) and the inliers recomputed, up to
     ``refits`` times until the inlier set stops changing (``refits=1``: refit once).
@@ -159,7 +159,6 @@ def ransac_rigid3d(
         return RansacResult(np.eye(3), np.zeros(3), np.zeros(n, bool), 0)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     drawn = sample_triples(rng, n, int(iterations))
-    consistent = _rigid_consistent(drawn, X_ref, X_cur, Q_ref, Q_cur, chi2)
 
     Qa6 = np.stack([Q_ref[:, i, j] for i, j in SYM6])  # (6, N)
     Qb9 = Q_cur.reshape(n, 9)
@@ -185,7 +184,8 @@ def ransac_rigid3d(
             best_count = 0
     chunk = max(1, min(RANSAC_BATCH, RANSAC_CHUNK // n))
     for s in range(0, drawn.shape[0], chunk):
-        samples = drawn[s:s + chunk][consistent[s:s + chunk]]
+        samples = drawn[s:s + chunk]  # tested for consistency batch by batch: most runs stop after one
+        samples = samples[_rigid_consistent(samples, X_ref, X_cur, Q_ref, Q_cur, chi2)]
         if samples.shape[0]:
             score(*rigid_fit(X_ref[samples], X_cur[samples]))
         if s + chunk >= required_samples(best_count / n, confidence):
