@@ -32,7 +32,9 @@ numpy's BLAS are kept to one thread each (:func:`kernel_threads`).
 
 from __future__ import annotations
 
+import ctypes
 import os
+import threading
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -138,7 +140,8 @@ def prepare_outputs(out: Path, files: Sequence[str], figures: tuple[str, Sequenc
 
 @contextmanager
 def kernel_threads(n: int = 1):
-    """Keep OpenCV and numpy's BLAS library to ``n`` threads each inside the block (restored after).
+    """Keep OpenCV and numpy's BLAS library to ``n`` threads each inside the block (restored after),
+    and glibc's ``malloc`` from handing freed memory back to the system (:func:`_keep_freed_memory`).
 
     The run already keeps the cores busy (the frame pair on the main thread, :data:`PREFETCH`
     frames prepared on workers). A multi-threaded BLAS (OpenBLAS) would split the small matrix
@@ -154,6 +157,7 @@ def kernel_threads(n: int = 1):
         threadpool_limits = None
     before = cv2.getNumThreads()
     cv2.setNumThreads(n)
+    _keep_freed_memory(True)
     try:
         if threadpool_limits is None:
             yield
@@ -162,7 +166,52 @@ def kernel_threads(n: int = 1):
                 yield
     finally:
         cv2.setNumThreads(before)
+        _keep_freed_memory(False)
 
+
+#: glibc ``mallopt`` parameters and the values :func:`_keep_freed_memory` sets (bytes): blocks up to
+#: 64 MiB come from the heap (not a fresh ``mmap`` each), whose top is kept up to 256 MiB and grown
+#: 16 MiB at a time. glibc's defaults (restored after): 128 KiB, 128 KiB, 0.
+_MALLOPT = {-3: (64 << 20, 128 << 10), -1: (256 << 20, 128 << 10), -2: (16 << 20, 0)}  # MMAP_THRESHOLD, TRIM_THRESHOLD, TOP_PAD
+_malloc_lock = threading.Lock()
+_malloc = {"blocks": 0, "kept": False}  # open kernel_threads blocks (nested, or on several threads); set?
+
+
+def _glibc_mallopt():
+    """glibc's ``mallopt`` through ctypes, or None on any other C library or platform."""
+    try:
+        if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
+            return None
+        mallopt = ctypes.CDLL(None).mallopt
+    except (AttributeError, ValueError, OSError, TypeError):  # no confstr (Windows), not glibc (musl, macOS)
+        return None
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return mallopt
+
+
+def _keep_freed_memory(on: bool) -> bool:
+    """Tell glibc's ``malloc`` to keep freed memory for reuse (``on``, the first open block) or
+    restore its defaults (the last block closed); returns whether the settings are in effect
+    (always False without glibc: nothing happens there).
+
+    The odometry allocates and frees arrays of hundreds of kilobytes to megabytes per frame
+    (matching, RANSAC, decoding). By default glibc maps each block above 128 KiB afresh and trims
+    the heap as soon as its free top exceeds the threshold, so the same memory is faulted in again
+    and again: on the shared 240 frames that was about 100 000 page faults per run, and the RANSAC
+    took about twice as long as on memory it had used before. The peak memory is unchanged (freed
+    memory is reused, not added to). Process-wide while on; glibc's adaptive threshold stays off
+    after the restore."""
+    with _malloc_lock:
+        _malloc["blocks"] = _malloc["blocks"] + 1 if on else max(_malloc["blocks"] - 1, 0)
+        first, last = on and _malloc["blocks"] == 1, not on and _malloc["blocks"] == 0
+        mallopt = _glibc_mallopt() if first or (last and _malloc["kept"]) else None
+        if mallopt is not None:
+            done = [mallopt(param, values[0] if on else values[1]) == 1 for param, values in _MALLOPT.items()]
+            if on and not all(done):  # a C library that refuses one: all back to the defaults
+                for param, values in _MALLOPT.items():
+                    mallopt(param, values[1])
+            _malloc["kept"] = on and all(done)
+        return _malloc["kept"]
 
 def _frame_loader(seq, n: int, depth_scale: float, camera: Camera):
     """``i -> (grey, depth)`` for the frames of ``seq``: a TUM folder's image files decoded at

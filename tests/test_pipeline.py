@@ -293,3 +293,70 @@ def test_run_sequence_rejects_bad_max_frames(small_seq, tmp_path, max_frames):
     with pytest.raises(ConfigError, match="max_frames"):
         run_sequence(TumSequence(small_seq), tmp_path / "o", max_frames=max_frames, plots=False, progress=False)
     assert not (tmp_path / "o").exists()
+
+
+def test_kernel_threads_keeps_freed_memory_on_glibc(monkeypatch):
+    import ctypes
+    import os
+
+    from covo_gtsam import pipeline
+
+    if pipeline._glibc_mallopt() is None:
+        pytest.skip("glibc only")
+    calls = []
+    real = ctypes.CDLL(None).mallopt
+
+    class Libc:
+        def __init__(self, name):
+            pass
+
+        @property
+        def mallopt(self):
+            def mallopt(param, value):
+                calls.append((param, value))
+                return real(param, value)
+            return mallopt
+
+    monkeypatch.setattr(ctypes, "CDLL", Libc)
+    with pipeline.kernel_threads(1):
+        with pipeline.kernel_threads(1):  # nested: the outer block sets and restores
+            inside = list(calls)
+        assert calls == inside and pipeline._malloc["kept"]
+    assert sorted(inside) == sorted((p, v[0]) for p, v in pipeline._MALLOPT.items())
+    assert sorted(calls[len(inside):]) == sorted((p, v[1]) for p, v in pipeline._MALLOPT.items())
+    assert not pipeline._malloc["kept"] and pipeline._malloc["blocks"] == 0
+    # a C library that refuses a setting: all restored, reported as not kept
+    calls.clear()
+    monkeypatch.setattr(os, "confstr", lambda name: "glibc 2.99")
+    real_set = Libc.mallopt
+
+    def refusing(self):
+        inner = real_set.fget(self)
+        return lambda param, value: 0 if param == -2 and value != 0 else inner(param, value)
+
+    monkeypatch.setattr(Libc, "mallopt", property(refusing))
+    assert pipeline._keep_freed_memory(True) is False
+    assert sorted(calls[-3:]) == sorted((p, v[1]) for p, v in pipeline._MALLOPT.items())
+    assert pipeline._keep_freed_memory(False) is False
+
+
+def test_kernel_threads_without_glibc_leaves_malloc_alone(monkeypatch):
+    import ctypes
+    import os
+
+    from covo_gtsam import pipeline
+
+    def no_glibc(name):
+        raise ValueError("unrecognized configuration name")  # what musl and macOS give
+
+    def no_call(name):
+        raise AssertionError("no C library call without glibc")
+
+    monkeypatch.setattr(os, "confstr", no_glibc)
+    monkeypatch.setattr(ctypes, "CDLL", no_call)
+    assert pipeline._glibc_mallopt() is None
+    with pipeline.kernel_threads(1):
+        assert not pipeline._malloc["kept"]
+    monkeypatch.delattr(os, "confstr")  # Windows
+    assert pipeline._glibc_mallopt() is None and pipeline._keep_freed_memory(True) is False
+    assert pipeline._keep_freed_memory(False) is False and pipeline._malloc["blocks"] == 0
