@@ -139,13 +139,15 @@ def test_png_fast_path_on_the_tum_sample(sample_dir):
     rgb = sorted((sample_dir / "rgb").glob("*.png"))[:5]
     depth = sorted((sample_dir / "depth").glob("*.png"))[:5]
     assert rgb and depth
-    for p in rgb:
-        assert images._png_bytes(str(p), ((2, 8),)) is not None
-        np.testing.assert_array_equal(load_grey(p), cv2.imread(str(p), cv2.IMREAD_GRAYSCALE))
-    for p in depth:
-        assert images._png_bytes(str(p), ((0, 16),)) is not None
-        want = cv2.imread(str(p), cv2.IMREAD_UNCHANGED).astype(np.float32) * np.float32(1 / 5000.0)
-        np.testing.assert_array_equal(load_depth(p), want)
+    kept = []
+    for c, d in zip(rgb, depth):  # colour and depth in turn, as a frame loader reads them
+        assert images._png_bytes(str(c), ((2, 8),)) is not None
+        assert images._png_bytes(str(d), ((0, 16),)) is not None
+        kept.append((load_grey(c), load_depth(d)))
+    for (grey, depth_m), c, d in zip(kept, rgb, depth):  # the work arrays reused: no image shares them
+        np.testing.assert_array_equal(grey, cv2.imread(str(c), cv2.IMREAD_GRAYSCALE))
+        want = cv2.imread(str(d), cv2.IMREAD_UNCHANGED).astype(np.float32) * np.float32(1 / 5000.0)
+        np.testing.assert_array_equal(depth_m, want)
 
 
 def test_without_isal_opencv_decodes_the_same_images(sample_dir, tmp_path, monkeypatch):

@@ -109,26 +109,25 @@ def _png_bytes(path: str, formats: tuple[tuple[int, int], ...]) -> tuple[np.ndar
     if not np.all(filters == 1) or height * width * 255 >= 1 << 31:  # int32 sums below
         return None
     # "Sub": each byte adds the one a pixel to its left; the running sum of each row, mod 256
-    total = _png_scratch("total", (height + 1, width + 1, step), np.int32)
+    total = _png_scratch("a", (height + 1, width + 1, step), np.int32)
     total = cv2.integral(np.ascontiguousarray(pixels), sum=total)  # sums over both axes
-    row_sum = np.subtract(total[1:, 1:], total[:-1, 1:], out=_png_scratch("rows", pixels.shape, np.int32))
+    row_sum = np.subtract(total[1:, 1:], total[:-1, 1:], out=_png_scratch("b", pixels.shape, np.int32))
     return np.bitwise_and(row_sum, 255, out=row_sum), colour_type
 
 
 _png_local = threading.local()
 
 
-def _png_scratch(name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
-    """A work array of :func:`_png_bytes` kept per thread for the next image of the same size
-    (fresh arrays of megabytes cost more in page faults than the arithmetic on them)."""
-    key = (name, tuple(shape), np.dtype(dtype).str)
-    arrays = _png_local.__dict__
-    a = arrays.get(key)
-    if a is None:
-        if len(arrays) >= 8:  # images of changing sizes: keep the latest only
-            arrays.clear()
-        a = arrays[key] = np.empty(shape, dtype)
-    return a
+def _png_scratch(slot: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+    """A work array in one of this thread's two memory slots ("a", "b"), kept for the next image
+    (fresh arrays of megabytes cost more in page faults than the arithmetic on them). What
+    :func:`_png_bytes` returns lives in slot "b" until the thread's next image."""
+    nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    buffer = getattr(_png_local, slot, None)
+    if buffer is None or buffer.shape[0] < nbytes:
+        buffer = np.empty(nbytes, np.uint8)
+        setattr(_png_local, slot, buffer)
+    return buffer[:nbytes].view(dtype).reshape(shape)
 
 
 def _png_grey(path: str) -> np.ndarray | None:
@@ -141,9 +140,9 @@ def _png_grey(path: str) -> np.ndarray | None:
     pixels, colour_type = found
     if colour_type == 0:
         return pixels[:, :, 0].astype(np.uint8)
-    rgb = _png_scratch("rgb", pixels.shape, np.float32)
+    rgb = _png_scratch("a", pixels.shape, np.float32)  # slot "a" is free again, "b" holds the pixels
     np.copyto(rgb, pixels, casting="unsafe")  # byte values 0-255
-    grey = cv2.transform(rgb, _PNG_GREY_WEIGHTS, dst=_png_scratch("grey", pixels.shape[:2], np.float32))
+    grey = cv2.transform(rgb, _PNG_GREY_WEIGHTS, dst=_png_scratch("b", pixels.shape[:2], np.float32))
     return grey.astype(np.uint8)  # truncation: libpng's ">> 15"
 
 
