@@ -3,7 +3,8 @@
     python benchmarks/bench_pipeline.py SEQ_DIR [--max-frames N]
 
 1. Stages timed one after another on the main thread (no overlap), calling the same functions the
-   pipeline calls (wall ms per frame).
+   pipeline calls, OpenCV and BLAS single-threaded as in `covo run` (wall ms per frame; the
+   matching is guided by the previous pair's motion, as the odometry's prediction guides it).
 2. ``register_frame`` alone on frames prepared beforehand, one thread (wall and CPU ms per frame).
 3. CPU of a whole run in this process (:func:`covo_gtsam.pipeline.run_sequence`, progress bar and
    output files included, no figures): CPU seconds per frame of the process, of the main thread
@@ -44,10 +45,14 @@ from covo_gtsam.datasets.images import load_depth, load_grey
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.estimator import estimate_relative_pose
 from covo_gtsam.frontend import (
+    GUIDED_CELL_PX,
     associate_frames,
     detect,
+    guided_cross_check,
+    keep_best,
     make_orb,
     match,
+    predicted_pixels,
     prepare_frame,
     ransac_rigid3d,
 )
@@ -65,9 +70,11 @@ STAGES = {
     "decode colour + depth (PNG)": [("images.py", "load_grey"), ("images.py", "load_depth")],
     "ORB": [("matching.py", "detect")],
     "3D points + covariances": [("points.py", "prepare_frame")],
-    "matching": [("matching.py", "match")],
+    "matching (guided; all pairs without a prediction)": [("matching.py", "match"),
+                                                          ("matching.py", "guided_cross_check"),
+                                                          ("pairs.py", "predicted_pixels")],
     "RANSAC": [("ransac.py", "ransac_rigid3d")],
-    "solves (2 per pair)": [("odometry.py", "_solve")],
+    "solve + marginals (1 per pair)": [("odometry.py", "_solve")],
     "time compensation of points": [("odometry.py", "_to_frame_time"), ("rolling_shutter.py", "frame_twists")],
     "covariance terms + composition": [("odometry.py", "_error_bases"), ("odometry.py", "sensor_covariance"),
                                        ("covariance.py", "compose_covariance"), ("clock.py", "restamp")],
@@ -79,12 +86,22 @@ STAGES = {
 }
 
 
-def compensated_solve(pairs, res, dt: float, height: int, readout: float):
-    """The odometry's second solve: points moved to their image's timestamp with the pair's twist."""
-    twist_ref, twist_cur = frame_twists(res.pose, dt)
+def compensated_solve(pairs, dt: float, height: int, readout: float):
+    """The odometry's solve: points moved to their image's timestamp with the twist of the RANSAC's
+    pose, then solved once (with its marginal covariance)."""
+    initial = gtsam.Pose3(pairs.T_init)
+    twist_ref, twist_cur = frame_twists(initial, dt)
     X_ref = compensate_points(pairs.X_ref, pairs.uv_ref[:, 1], twist_ref, height, readout)
     X_cur = compensate_points(pairs.X_cur, pairs.uv_cur[:, 1], twist_cur, height, readout)
-    return estimate_relative_pose(X_ref, X_cur, pairs.Q_ref, pairs.Q_cur, initial=res.pose)
+    return estimate_relative_pose(X_ref, X_cur, pairs.Q_ref, pairs.Q_cur, initial=initial)
+
+
+def guided_match(prev, frame, prior, camera, fe):
+    """The odometry's matching with a motion prediction ``prior`` (4x4 T_ref,cur)."""
+    ia, ib, dist = guided_cross_check(prev.valid_features, predicted_pixels(prev, prior, camera), frame.valid_features,
+                                      frame.uv_undistorted[frame.valid_index], GUIDED_CELL_PX, fe.wta_k > 2)
+    keep = keep_best(dist, fe.keep_ratio, fe.max_hamming)
+    return ia[keep], ib[keep], dist[keep]
 
 
 def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
@@ -93,7 +110,7 @@ def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
     noise = cfg.noise_model()
     fe = cfg.frontend
     t = defaultdict(list)
-    prev = None
+    prev = prior = None
 
     def clock(name, fn, *a, **k):
         s = time.perf_counter()
@@ -106,19 +123,25 @@ def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
         depth = clock("decode depth", load_depth, seq.depth_paths[i])
         clock("ORB detect", detect, grey, orb)
         frame = clock("prepare frame (ORB + 3D points + covariances)", prepare_frame, grey, depth, seq.camera, orb,
-                      noise, fe)
+                      noise, fe, use_surface_angle=cfg.noise.use_surface_angle,
+                      pixel_sigma_by_level=cfg.noise.pixel_sigma_by_level,
+                      depth_lookup_noise=cfg.noise.depth_lookup_noise)
         if prev is not None:
-            ia, ib, _ = clock("matching", match, prev.valid_features, frame.valid_features, fe.keep_ratio)
+            if prior is None:
+                ia, ib, _ = clock("matching (all pairs: no prediction yet)", match, prev.valid_features,
+                                  frame.valid_features, fe.keep_ratio)
+            else:
+                ia, ib, _ = clock("matching (guided by the last pair's motion)", guided_match, prev, frame, prior,
+                                  seq.camera, fe)
             ir, ic = prev.valid_index[ia], frame.valid_index[ib]
             clock("outlier rejection (3D RANSAC)", ransac_rigid3d, prev.points[ir], frame.points[ic],
-                  prev.covariances[ir], frame.covariances[ic], fe.ransac_iterations, fe.ransac_chi2, fe.seed)
-            pairs = associate_frames(prev, frame, fe)
-            res = clock("solve + marginals", estimate_relative_pose, pairs.X_ref, pairs.X_cur, pairs.Q_ref,
-                        pairs.Q_cur, initial=None if pairs.T_init is None else gtsam.Pose3(pairs.T_init))
-            if cfg.sensor.rolling_shutter_s > 0:
-                dt = seq.timestamps[i] - seq.timestamps[i - 1]
-                res = clock("rolling shutter: compensate + solve again", compensated_solve, pairs, res, dt,
-                            seq.camera.height, cfg.sensor.rolling_shutter_s)
+                  prev.covariances[ir], frame.covariances[ic], fe.ransac_iterations, fe.ransac_chi2, fe.seed,
+                  prior=prior)
+            pairs = associate_frames(prev, frame, fe, prior, seq.camera)
+            dt = seq.timestamps[i] - seq.timestamps[i - 1]
+            res = clock("rolling-shutter compensation + solve + marginals", compensated_solve, pairs, dt,
+                        seq.camera.height, cfg.sensor.rolling_shutter_s)
+            prior = res.matrix
             clock("output lines", lambda res=res: (format_tum_line(0.0, res.matrix),
                                                     format_relative_line(0.0, 0.0, res.matrix, res.covariance)))
         prev = frame
@@ -237,7 +260,8 @@ def whole_process(seq_dir: str, n: int | None) -> tuple[float, float, float]:
 
 def main() -> None:
     seq, n = sequence_from_command_line(__doc__)
-    times = stage_times(seq, n)
+    with kernel_threads(1):
+        times = stage_times(seq, n)
     print(f"per-stage time per frame on {seq.name} ({n} frames), ms")
     print(f"{'stage':<48} {'median':>7} {'p10':>7} {'p90':>7}")
     for name, v in times.items():

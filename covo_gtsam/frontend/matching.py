@@ -270,27 +270,30 @@ def guided_cross_check(
     # the compared pairs, grouped by i (ascending), j in cell order
     first = np.cumsum(counts) - counts
     ii = np.repeat(np.repeat(ia, 3), counts)
-    jj = np.take(order, np.arange(total, dtype=np.intp) + np.repeat(lo.ravel() - first, counts))
+    jj = np.take(order, np.arange(total, dtype=np.int32) + np.repeat((lo.ravel() - first).astype(np.int32), counts))
     x = np.take(a, ii, axis=0)
     x ^= np.take(b, jj, axis=0)
     if hamming2:
         np.bitwise_or(x, x >> np.uint64(1), out=x)
         np.bitwise_and(x, _HAMMING2_MASK, out=x)
     c = _bitcount(x, np.empty(x.shape, np.uint8))
-    d = np.add(c[:, 0], c[:, 1]).astype(np.int64)  # at most 256: int64 keys (distance, index)
+    # keys (distance << shift) | index: the smallest key is the best distance, ties to the lowest index
+    shift, key_type = (20, np.int32) if max(na, nb) <= 1 << 20 else (32, np.int64)  # distance <= 256
+    d = np.add(c[:, 0], c[:, 1]).astype(key_type)
     d += c[:, 2]
     d += c[:, 3]
-    d <<= 32
+    d <<= shift
+    low = (1 << shift) - 1
     # forward: the best (distance, j) per i; backward: the best (distance, i) per j
     per_i = counts.reshape(-1, 3).sum(axis=1)
     has = per_i > 0
     best_j = np.minimum.reduceat(d | jj, (np.cumsum(per_i) - per_i)[has])
-    best_i = np.full(nb, np.iinfo(np.int64).max, np.int64)
+    best_i = np.full(nb, np.iinfo(key_type).max, key_type)
     np.minimum.at(best_i, jj, d | ii)
     i_has = ia[has]
-    j_best = (best_j & 0xFFFFFFFF).astype(np.intp)
-    mutual = (best_i[j_best] & 0xFFFFFFFF) == i_has
-    return i_has[mutual].astype(np.intp), j_best[mutual], (best_j[mutual] >> 32).astype(np.uint16)
+    j_best = (best_j & low).astype(np.intp)
+    mutual = (best_i[j_best] & low) == i_has
+    return i_has[mutual].astype(np.intp), j_best[mutual], (best_j[mutual] >> shift).astype(np.uint16)
 
 
 def keep_best(dist: np.ndarray, keep_ratio: float, max_hamming: int | None = None) -> np.ndarray:
