@@ -146,8 +146,10 @@ class PointNoiseModel:
 
 
 def propagate(J: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """First-order propagation ``J Q J^T`` for stacks (N, m, n) and (N, n, n)."""
-    return np.einsum("nij,njk,nlk->nil", J, Q, J, optimize=True)
+    """First-order propagation ``J Q J^T`` for stacks (N, m, n) and (N, n, n): ``(J Q) J^T`` as two
+    stacked matrix products (what ``np.einsum(..., optimize=True)`` computes, without its path search)."""
+    J = np.asarray(J, dtype=float)
+    return (J @ np.asarray(Q, dtype=float)) @ np.swapaxes(J, -1, -2)
 
 
 def surface_angles(
