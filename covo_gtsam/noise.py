@@ -173,14 +173,16 @@ def surface_angles(
     ok = (ui >= step) & (ui < w - step) & (vi >= step) & (vi < h - step)
     ui_c, vi_c = np.where(ok, ui, step), np.where(ok, vi, step)
 
-    def point(du: int, dv: int) -> tuple[np.ndarray, np.ndarray]:
-        z = depth[vi_c + dv, ui_c + du].astype(float)
-        p = np.stack([(ui_c + du - camera.cx) * z / camera.fx, (vi_c + dv - camera.cy) * z / camera.fy, z], 1)
-        return p, z
-
-    pc, zc = point(0, 0)
-    (pr, zr), (pl, zl), (pd, zd), (pu, zu) = point(step, 0), point(-step, 0), point(0, step), point(0, -step)
-    zs = np.stack([zc, zr, zl, zd, zu], 1)
+    # the pixel and its four neighbours (centre, right, left, down, up), back-projected: (5, N, 3)
+    u = ui_c + np.array([0, step, -step, 0, 0])[:, None]
+    v = vi_c + np.array([0, 0, 0, step, -step])[:, None]
+    z = depth[v, u].astype(float)
+    p = np.empty((5, n, 3))
+    p[:, :, 0] = (u - camera.cx) * z / camera.fx
+    p[:, :, 1] = (v - camera.cy) * z / camera.fy
+    p[:, :, 2] = z
+    pc, pr, pl, pd, pu = p
+    zc, zs = z[0], z.T
     ok &= np.all(zs > 0, axis=1)
     ok &= np.all(np.abs(zs[:, 1:] - zc[:, None]) < max_jump * np.maximum(zc[:, None], 1e-9), axis=1)
     normal = np.cross(pr - pl, pd - pu)
