@@ -75,7 +75,9 @@ STAGES = {
                                                           ("pairs.py", "predicted_pixels")],
     "RANSAC": [("ransac.py", "ransac_rigid3d")],
     "solve + marginals (1 per pair)": [("odometry.py", "_solve")],
-    "time compensation of points": [("odometry.py", "_to_frame_time"), ("rolling_shutter.py", "frame_twists")],
+    "time compensation of points, offsets' lookup variance": [("odometry.py", "_to_frame_time"),
+                                                              ("rolling_shutter.py", "frame_twists"),
+                                                              ("odometry.py", "_with_offset_noise")],
     "covariance terms + composition": [("odometry.py", "_error_bases"), ("odometry.py", "sensor_covariance"),
                                        ("covariance.py", "compose_covariance"), ("clock.py", "restamp")],
     "integrity check": [("integrity.py", "depth_free_check"), ("integrity.py", "normalise")],
@@ -148,9 +150,15 @@ def stage_times(seq: TumSequence, n: int) -> dict[str, np.ndarray]:
     return {k: np.array(v) for k, v in t.items()}
 
 
+def depth_offset(seq, i: int) -> float:
+    """Frame ``i``'s depth stamp minus its colour stamp, as `covo run` hands it to ``prepare``."""
+    stamps = getattr(seq, "depth_timestamps", None)
+    return 0.0 if stamps is None else float(stamps[i] - seq.timestamps[i])
+
+
 def pre_decoded_rate(seq, n: int) -> float:
     """Frames/s of the odometry on images decoded beforehand, preparing ahead as :mod:`covo_gtsam.pipeline` does."""
-    images = [seq.load(i) for i in range(n)]
+    images = [(*seq.load(i), depth_offset(seq, i)) for i in range(n)]
     vo = VisualOdometry(seq.camera)
     start = time.perf_counter()
     with kernel_threads(1), ThreadPoolExecutor(max_workers=PREFETCH) as pool:
@@ -168,7 +176,7 @@ def register_times(seq, n: int) -> tuple[np.ndarray, np.ndarray]:
     one thread, OpenCV and BLAS single-threaded as in `covo run`."""
     vo = VisualOdometry(seq.camera)
     with kernel_threads(1):
-        frames = [vo.prepare(*seq.load(i)) for i in range(n)]
+        frames = [vo.prepare(*seq.load(i), depth_offset(seq, i)) for i in range(n)]
         wall, cpu = [], []
         for i in range(n):
             w, c = time.perf_counter(), time.thread_time()
