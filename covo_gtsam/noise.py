@@ -223,19 +223,29 @@ def depth_lookup_variance(depth: np.ndarray, uv: np.ndarray, offsets: np.ndarray
     ui = np.clip(np.floor(uv[:, 0] + 0.5).astype(np.intp), 0, w - 1)
     vi = np.clip(np.floor(uv[:, 1] + 0.5).astype(np.intp), 0, h - 1)
     zc = depth[vi, ui].astype(float)
-    for off in offsets:
-        for node, weight in GAUSS_HERMITE_5:
-            total = np.zeros(n)
-            count = np.zeros(n)
-            for sign in (node, -node):
-                with np.errstate(invalid="ignore"):
-                    u2 = np.floor(uv[:, 0] + sign * off[:, 0] + 0.5)
-                    v2 = np.floor(uv[:, 1] + sign * off[:, 1] + 0.5)
-                    on = np.isfinite(u2) & np.isfinite(v2) & (u2 >= 0) & (u2 < w) & (v2 >= 0) & (v2 < h)
-                z2 = depth[np.where(on, v2, 0).astype(np.intp), np.where(on, u2, 0).astype(np.intp)].astype(float)
-                with np.errstate(invalid="ignore"):
-                    ok = on & np.isfinite(z2) & (z2 > 0)
-                total += np.where(ok, (z2 - zc) ** 2, 0.0)
-                count += ok
-            out += 2.0 * weight * np.where(count > 0, total / np.maximum(count, 1), 0.0)
+    nodes = np.array([(a, -a) for a, _ in GAUSS_HERMITE_5])  # (J, 2): each node with both signs
+    # every sigma point at once: (K, J, 2, N, 2)
+    points = uv + nodes[None, :, :, None, None] * offsets[:, None, None, :, :]
+    z2, ok = nearest_depth(depth, points)
+    squared = np.where(ok, (z2 - zc) ** 2, 0.0)
+    total = squared[:, :, 0] + squared[:, :, 1]
+    count = ok.sum(axis=2)
+    for k in range(offsets.shape[0]):
+        for j, (_, weight) in enumerate(GAUSS_HERMITE_5):
+            out += 2.0 * weight * np.where(count[k, j] > 0, total[k, j] / np.maximum(count[k, j], 1), 0.0)
     return out
+
+
+def nearest_depth(depth: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (...) at the nearest pixel to ``uv`` (..., 2) in a depth image (H, W; metres, 0 = none)
+    and whether it is a measurement there: the pixel is on the image and its depth finite and
+    positive (``z`` means nothing elsewhere)."""
+    h, w = depth.shape
+    with np.errstate(invalid="ignore"):
+        u = np.floor(uv[..., 0] + 0.5)
+        v = np.floor(uv[..., 1] + 0.5)
+        on = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    z = depth[np.where(on, v, 0).astype(np.intp), np.where(on, u, 0).astype(np.intp)].astype(float)
+    with np.errstate(invalid="ignore"):
+        ok = on & np.isfinite(z) & (z > 0)
+    return z, ok

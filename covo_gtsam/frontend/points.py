@@ -18,7 +18,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..noise import PointNoiseModel, depth_lookup_variance, surface_angles
+from ..noise import PointNoiseModel, depth_lookup_variance, nearest_depth, surface_angles
 from .matching import Features, detect
 from .settings import FrontendConfig
 
@@ -35,17 +35,9 @@ def lookup_depth(
     depth_m = np.asarray(depth_m)
     if depth_m.ndim != 2:
         raise InputError(f"depth image must be 2-D (H, W), got shape {depth_m.shape}")
-    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    h, w = depth_m.shape
+    z, measured = nearest_depth(depth_m, np.asarray(uv, dtype=float).reshape(-1, 2))
     with np.errstate(invalid="ignore"):
-        ui = np.floor(uv[:, 0] + 0.5)
-        vi = np.floor(uv[:, 1] + 0.5)
-        on = np.isfinite(ui) & np.isfinite(vi) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-    ui = np.where(on, ui, 0).astype(np.intp)
-    vi = np.where(on, vi, 0).astype(np.intp)
-    z = depth_m[vi, ui].astype(float)
-    with np.errstate(invalid="ignore"):
-        valid = on & np.isfinite(z) & (z > 0) & (z >= min_depth) & (z <= max_depth)
+        valid = measured & (z >= min_depth) & (z <= max_depth)
     return np.where(valid, z, 0.0), valid
 
 
