@@ -26,6 +26,10 @@ physical size (:data:`ERROR_TERMS`):
   colour-depth offset (a depth image delivered with the neighbouring colour image);
 * ``rolling_shutter`` (dimensionless): the twist the rolling-shutter compensation uses at the
   current frame off by ``c`` times half the change of the pair twist since the previous pair;
+* ``latency`` (s): the stamps all late (or early) by one unknown constant against the clock
+  the poses are used on (a driver's capture-to-stamp delay). Both frames' poses are then off by
+  the same time, so the pair is off by ``L (xi_cur - Ad(T^-1) xi_ref)``: the change of the twist
+  between the frames, not the twist itself as with ``timing`` (:func:`latency_basis`);
 * ``stamp_jitter`` (s): like ``timing``, the jitter of the stamps around the camera's regular
   clock: in full for a frame the frame clock has not placed yet (the first frames of a run), and
   ``1/n`` of its variance for a frame placed by a clock fitted to ``n`` stamps (the uncertainty of
@@ -46,15 +50,17 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance", "sensor_covariance",
+__all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance", "latency_basis",
+           "sensor_covariance",
            "log_likelihood", "fit_sensor_terms"]
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
-               "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s"}
+               "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s",
+               "latency": "latency_sigma_s"}
 #: The terms of the default model (the others fitted unstably across the halves of the shared
 #: fr1_rpy frames; docs/cross_validation.md).
-DEFAULT_TERMS = ("timing", "rolling_shutter")
+DEFAULT_TERMS = ("timing", "rolling_shutter", "latency")
 #: Terms held at their configured value (a prior) when the others are fitted.
 PRIOR_TERMS = ("stamp_jitter",)
 
@@ -96,6 +102,18 @@ def timing_covariance(twists: np.ndarray, timing_sigma_s: float = 1.0) -> np.nda
     default ``tau = 1`` it is the term's basis ``B``."""
     xi = np.asarray(twists, dtype=float)
     return timing_sigma_s**2 * np.einsum("...fi,...fj->...ij", xi, xi)
+
+
+def latency_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray) -> np.ndarray:
+    """Basis (6, 6) of the ``latency`` term of a pair ``T_ref,cur`` (4x4) whose frames have the body
+    twists ``twist_ref``, ``twist_cur`` (6,) ``[omega, v]`` (rad/s, m/s): ``b b^T`` with
+    ``b = xi_cur - Ad(T^-1) xi_ref``. Both stamps ``L`` seconds off move the pair to
+    ``Exp(L xi_ref)^-1 T Exp(L xi_cur) = T Exp(L b)`` to first order (right perturbation)."""
+    import gtsam
+
+    T = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float))
+    b = np.asarray(twist_cur, dtype=float) - T.inverse().AdjointMap() @ np.asarray(twist_ref, dtype=float)
+    return np.outer(b, b)
 
 
 def sensor_covariance(point_cov: np.ndarray, correlation_factor: float, sigma_rot_rad: float,

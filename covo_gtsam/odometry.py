@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from .calibration import timing_covariance
+from .calibration import latency_basis, timing_covariance
 from .camera import Camera
 from .choices import MotionModel
 from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
@@ -404,6 +404,7 @@ class VisualOdometry(DeprecatedStepAccess):
             return bases  # no motion: no timing terms
         twist_ref, velocity = twists
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
+        bases["latency"] = latency_basis(M, twist_ref, velocity)
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
         # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
         n_cur = self._clock.samples if self._clock_offset is not None else 0

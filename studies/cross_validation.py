@@ -40,10 +40,12 @@ RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9
 #: the per-point model alone (sensor settings): no sensor terms
 POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
                    **{name: 0.0 for name in ERROR_TERMS.values()})
-#: covariance models compared: the frame-level terms each fits besides kappa and the frame term
-MODELS = {"kappa + frame term": (), "+ timing": ("timing",), "+ timing, rolling shutter (default)": DEFAULT_TERMS,
-          "+ timing, rolling shutter, depth scale, depth time": ("timing", "rolling_shutter", "depth_scale",
-                                                                 "depth_time")}
+#: covariance models compared: whether kappa is fitted, and the frame-level terms each fits
+MODELS = {"kappa + frame term": (True, ()), "+ timing": (True, ("timing",)),
+          "+ timing, rolling shutter": (True, ("timing", "rolling_shutter")),
+          "+ timing, rolling shutter, latency": (True, DEFAULT_TERMS),
+          "frame term, timing, rolling shutter, latency; kappa 1 (default)": (False, DEFAULT_TERMS),
+          "+ depth scale, depth time; kappa 1": (False, DEFAULT_TERMS + ("depth_scale", "depth_time"))}
 CHAIN = 30
 
 
@@ -107,7 +109,7 @@ def check(fit, p: dict) -> str:
             f"{nt.max():.1f} / {nr.max():.1f} | {chain} | {log_likelihood(p['err'], covs):.2f}")
 
 
-UNITS = {"timing": (1e3, "ms"), "depth_scale": (1e2, "%"), "depth_time": (1.0, ""), "rolling_shutter": (1.0, "")}
+UNITS = {"timing": (1e3, "ms"), "latency": (1e3, "ms"), "depth_scale": (1e2, "%"), "depth_time": (1.0, ""), "rolling_shutter": (1.0, "")}
 
 
 def fit_row(fit) -> str:
@@ -128,8 +130,8 @@ def tables(data: Path) -> list[str]:
                   "|---|---|---|---|---|---|---|---|---|"]
         for fit_name, m in halves.items():
             train = subset(rpy, m & rpy["fit_ok"])
-            for model, names in MODELS.items():
-                fit = fit_sensor_terms(train["err"], train["cov"], bases={n: train["bases"][n] for n in names},
+            for model, (fit_kappa, names) in MODELS.items():
+                fit = fit_sensor_terms(train["err"], train["cov"], fit_kappa, bases={n: train["bases"][n] for n in names},
                                        fixed=train["fixed"])
                 for other, mo in halves.items():
                     if other != fit_name:

@@ -112,6 +112,44 @@ def test_timing_term_matches_monte_carlo_of_stamp_errors():
     np.testing.assert_allclose(C, sensor_covariance(P, 2.0, 0.001, 0.002) + pred)
 
 
+def test_latency_term_matches_monte_carlo_of_a_common_stamp_delay():
+    """Both frames' stamps L seconds off their captures (one L ~ N(0, s^2) for the pair) on a
+    trajectory whose twist changes between the frames: the relative pose between the shifted
+    times differs from the captured one by Log(T^-1 T_shifted), with covariance s^2 b b^T,
+    b = xi_cur - Ad(T^-1) xi_ref. The twists at the frames come from finite differences of the
+    trajectory (not from the formula's assumptions); a delay shared by both frames gives a
+    smaller error than independent ones (the timing term) when the twist hardly changes."""
+    import gtsam
+
+    from covo_gtsam.calibration import latency_basis, timing_covariance
+
+    xi0 = np.array([0.3, -1.2, 0.5, 0.05, 0.2, -0.1])  # rad/s, m/s
+    acc = np.array([-2.0, 3.5, 1.0, 0.15, -0.2, 0.05])  # rad/s^2, m/s^2
+
+    def pose(t: float) -> gtsam.Pose3:
+        return gtsam.Pose3.Expmap(t * xi0 + 0.5 * t * t * acc)
+
+    def twist(t: float, h: float = 1e-6) -> np.ndarray:
+        return gtsam.Pose3.Logmap(pose(t - h).between(pose(t + h))) / (2 * h)
+
+    t0, t1, s = 0.0, 0.3, 0.01  # a keyframe pair: the frames' axes differ by 0.5 rad
+    T = pose(t0).between(pose(t1))
+    rng = np.random.default_rng(8)
+    errs = np.array([gtsam.Pose3.Logmap(T.between(pose(t0 + L).between(pose(t1 + L))))
+                     for L in rng.normal(0, s, size=20000)])
+    B = latency_basis(T.matrix(), twist(t0), twist(t1))
+    np.testing.assert_allclose(np.cov(errs.T), s**2 * B, atol=0.05 * s**2 * np.abs(B).max())
+    assert np.linalg.matrix_rank(B, tol=1e-9 * np.abs(B).max()) == 1
+    # the same twist at both frames (constant velocity): the common delay cancels to first order
+    xi = twist(t0)
+    T_cv = gtsam.Pose3.Expmap(xi / 30)
+    assert np.abs(latency_basis(T_cv.matrix(), xi, xi)).max() < 1e-12
+    assert np.abs(timing_covariance(np.stack([xi, xi]))).max() > 0.1
+    # a wrong adjoint (the reference twist not carried into the current frame) fails the check
+    b_wrong = twist(t1) - twist(t0)
+    assert not np.allclose(np.cov(errs.T), s**2 * np.outer(b_wrong, b_wrong), atol=0.05 * s**2 * np.abs(B).max())
+
+
 @pytest.mark.slow
 def test_fit_recovers_frame_level_terms():
     """Errors drawn with a timing term (tau 3 ms, over twists of varying speed) and a rank-one
