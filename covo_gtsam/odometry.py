@@ -404,10 +404,10 @@ class VisualOdometry(DeprecatedStepAccess):
             return bases  # no motion: no timing terms
         twist_ref, velocity = twists
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
-        # without a previous pair the twist's change is unknown: taken as half the twist (as the
-        # rolling-shutter term below takes it)
-        bases["latency"] = (latency_basis(M, twist_ref, velocity) if ref_step.velocity is not None
-                            else np.outer(0.5 * velocity, 0.5 * velocity))
+        # the twist at each frame: the mean twist of the pair ending there (both half an interval
+        # late, which cancels in their change); without a previous pair the reference is taken at rest
+        bases["latency"] = (latency_basis(M, ref_step.velocity, velocity) if ref_step.velocity is not None
+                            else np.outer(velocity, velocity))
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
         # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
         n_cur = self._clock.samples if self._clock_offset is not None else 0

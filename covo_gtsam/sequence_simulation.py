@@ -6,7 +6,8 @@ with the error sources of a real unsynchronised RGB-D camera, each with a stated
 
 * a hand-held motion: a rotation vector and a position that are sums of sines (angular speeds up
   to ``max_angular_speed`` rad/s), frames captured on a regular clock of period ``period_s``;
-* timestamps off their capture by a white jitter of s.d. ``stamp_jitter_s`` (s);
+* timestamps off their capture by a white jitter of s.d. ``stamp_jitter_s`` (s), all of them
+  ``stamp_latency_s`` (s) late (a driver's delay, which no stamp shows);
 * a rolling shutter: row ``v`` of a colour image is captured ``readout_s (v - H/2) / H`` after the
   frame's capture time;
 * the depth image taken ``depth_offset_s`` later than the colour image (uniform per frame in the
@@ -48,6 +49,7 @@ class SequenceSimulationConfig:
     points: int = 4000
     period_s: float = 1.0 / 30.0
     stamp_jitter_s: float = 0.002
+    stamp_latency_s: float = 0.0
     readout_s: float = 0.025
     depth_offset_s: tuple[float, float] = (0.0, 0.015)
     pixel_sigma: float = 1.0
@@ -176,11 +178,11 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
 
     captures = np.arange(cfg.frames) * cfg.period_s
     stamp_offsets = rng.normal(0.0, cfg.stamp_jitter_s, cfg.frames)
-    stamps = captures + stamp_offsets
+    stamps = captures + cfg.stamp_latency_s + stamp_offsets
     order_ok = np.all(np.diff(stamps) > 0)
     if not order_ok:  # keep the stamps in time order, as a driver does
         stamps = np.maximum.accumulate(stamps) + np.arange(cfg.frames) * 1e-6
-        stamp_offsets = stamps - captures
+        stamp_offsets = stamps - captures - cfg.stamp_latency_s
     bad = rng.uniform(size=cfg.frames) < cfg.bad_frame_rate
     bad[:2] = False  # the run's first pairs set the integrity scale
     steps, frame_bad = [], []
@@ -217,6 +219,6 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     return SequenceSimulationResult(
         errors=np.array(errors).reshape(-1, 6), covariances=np.array(covs).reshape(-1, 6, 6),
         flagged=np.array(flagged, bool), bad=np.array(pair_bad, bool), quality=np.array(quality),
-        true_stamp_offsets=stamp_offsets, clock_offsets=np.array([s.clock_offset for s in steps]),
+        true_stamp_offsets=stamp_offsets + cfg.stamp_latency_s, clock_offsets=np.array([s.clock_offset for s in steps]),
         clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.has_pose), config=cfg,
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool))

@@ -109,7 +109,8 @@ def check(fit, p: dict) -> str:
             f"{nt.max():.1f} / {nr.max():.1f} | {chain} | {log_likelihood(p['err'], covs):.2f}")
 
 
-UNITS = {"timing": (1e3, "ms"), "latency": (1e3, "ms"), "depth_scale": (1e2, "%"), "depth_time": (1.0, ""), "rolling_shutter": (1.0, "")}
+UNITS = {"timing": (1e3, "ms"), "latency": (1e3, "ms"), "depth_scale": (1e2, "%"), "depth_time": (1.0, ""),
+         "rolling_shutter": (1.0, "")}
 
 
 def fit_row(fit) -> str:
@@ -131,8 +132,8 @@ def tables(data: Path) -> list[str]:
         for fit_name, m in halves.items():
             train = subset(rpy, m & rpy["fit_ok"])
             for model, (fit_kappa, names) in MODELS.items():
-                fit = fit_sensor_terms(train["err"], train["cov"], fit_kappa, bases={n: train["bases"][n] for n in names},
-                                       fixed=train["fixed"])
+                fit = fit_sensor_terms(train["err"], train["cov"], fit_kappa,
+                                       bases={n: train["bases"][n] for n in names}, fixed=train["fixed"])
                 for other, mo in halves.items():
                     if other != fit_name:
                         lines.append(f"| {fit_name[:1]} | {model} | {fit_row(fit)} | {other[:1]} (held out) | "
