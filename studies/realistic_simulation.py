@@ -7,7 +7,8 @@ are known: stamp jitter, a common stamp delay (latency), a rolling shutter, colo
 a per-frame depth-scale error and bad frames (a depth image 100 ms away from its colour image).
 Reported, over several seeds: what the run recovers of the injected parameters without ground
 truth (frame clock), what a maximum-likelihood fit against the truth recovers
-(`covo_gtsam.calibration.fit_sensor_terms`), the integrity check's detection and false-alarm rates, and the ANEES of the default settings.
+(`covo_gtsam.calibration.fit_sensor_terms`), the integrity check's detection and false-alarm
+rates, and the ANEES of the default settings.
 """
 
 from __future__ import annotations
