@@ -29,7 +29,9 @@ physical size (:data:`ERROR_TERMS`):
 * ``latency`` (s): the stamps all late (or early) by one unknown constant against the clock
   the poses are used on (a driver's capture-to-stamp delay). Both frames' poses are then off by
   the same time, so the pair is off by ``L (xi_cur - Ad(T^-1) xi_ref)``: the change of the twist
-  between the frames, not the twist itself as with ``timing`` (:func:`latency_basis`);
+  between the frames, not the twist itself as with ``timing`` (:func:`latency_basis`). A pair's
+  own twist carries its own estimation error, so the basis is the recent pairs' mean
+  (:class:`TwistChanges`), not this pair's;
 * ``stamp_jitter`` (s): like ``timing``, the jitter of the stamps around the camera's regular
   clock: in full for a frame the frame clock has not placed yet (the first frames of a run), and
   ``1/n`` of its variance for a frame placed by a clock fitted to ``n`` stamps (the uncertainty of
@@ -50,7 +52,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance", "latency_basis",
+__all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance", "twist_change", "latency_basis", "TwistChanges",
            "sensor_covariance",
            "log_likelihood", "fit_sensor_terms"]
 
@@ -104,16 +106,66 @@ def timing_covariance(twists: np.ndarray, timing_sigma_s: float = 1.0) -> np.nda
     return timing_sigma_s**2 * np.einsum("...fi,...fj->...ij", xi, xi)
 
 
-def latency_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray) -> np.ndarray:
-    """Basis (6, 6) of the ``latency`` term of a pair ``T_ref,cur`` (4x4) whose frames have the body
-    twists ``twist_ref``, ``twist_cur`` (6,) ``[omega, v]`` (rad/s, m/s): ``b b^T`` with
-    ``b = xi_cur - Ad(T^-1) xi_ref``. Both stamps ``L`` seconds off move the pair to
+def twist_change(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray) -> np.ndarray:
+    """``b = xi_cur - Ad(T^-1) xi_ref`` (6,): the change of the body twist (``[omega, v]``, rad/s and
+    m/s) from the reference frame to the current frame of a pair ``T_ref,cur`` (4x4), in the
+    current frame. Both stamps ``L`` seconds late move the pair to
     ``Exp(L xi_ref)^-1 T Exp(L xi_cur) = T Exp(L b)`` to first order (right perturbation)."""
     import gtsam
 
     T = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float))
-    b = np.asarray(twist_cur, dtype=float) - T.inverse().AdjointMap() @ np.asarray(twist_ref, dtype=float)
+    return np.asarray(twist_cur, dtype=float) - T.inverse().AdjointMap() @ np.asarray(twist_ref, dtype=float)
+
+
+def latency_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray) -> np.ndarray:
+    """Basis (6, 6) ``b b^T`` of the ``latency`` term for known twists at the two frames
+    (:func:`twist_change`)."""
+    b = twist_change(T_ref_cur, twist_ref, twist_cur)
     return np.outer(b, b)
+
+
+class TwistChanges:
+    """Basis of the ``latency`` term from the recent changes of the camera's twist (no ground truth).
+
+    A pair's twist ``Log(T)/dt`` contains the pair's own estimation error, so a basis built from
+    it grows where that pair's error lies and would cover it by construction. The basis of a pair
+    is therefore the mean over the last ``window`` pairs *before* it of ``b b^T - N``, with ``b``
+    the change of the twist from one pair to the next (:func:`latency_basis`; each pair's mean
+    twist lags its frame by half an interval, which cancels in the change) and ``N`` the part of
+    ``b b^T`` the two pairs' estimation noise accounts for (their per-point covariances over
+    ``dt^2``); rotation block only (a translation change of the twist is below its noise). The
+    mean is clipped to positive semidefinite (clipping each term instead would leave most of the
+    noise in). Zero until a change has been seen.
+    """
+
+    def __init__(self, window: int = 10) -> None:
+        from collections import deque
+
+        self._changes = deque(maxlen=window)
+
+    def basis(self) -> np.ndarray:
+        """6x6 basis (tangent ``[omega, v]``, (rad/s)^2 blocks) for the next pair."""
+        if not self._changes:
+            return np.zeros((6, 6))
+        w, U = np.linalg.eigh(np.mean(self._changes, axis=0))
+        return (U * np.clip(w, 0.0, None)) @ U.T
+
+    def add(self, T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray, cov_ref: np.ndarray,
+            cov_cur: np.ndarray, dt: float) -> None:
+        """Record the change between two consecutive pairs' mean twists (6,) (rad/s, m/s); ``T_ref,cur``
+        (4x4) is the later pair, ``cov_ref``/``cov_cur`` (6, 6) the pairs' per-point covariances
+        and ``dt`` (s) the later pair's interval."""
+        import gtsam
+
+        Ad = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float)).inverse().AdjointMap()
+        X = latency_basis(T_ref_cur, twist_ref, twist_cur) - (cov_cur + Ad @ cov_ref @ Ad.T) / dt**2
+        X[3:, :] = 0.0
+        X[:, 3:] = 0.0
+        if np.all(np.isfinite(X)):
+            self._changes.append(X)
+
+    def clear(self) -> None:
+        self._changes.clear()
 
 
 def sensor_covariance(point_cov: np.ndarray, correlation_factor: float, sigma_rot_rad: float,

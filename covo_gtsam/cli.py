@@ -224,7 +224,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out = check_output_dir(args.out)
     with _lock_outputs(out, ["calibration.json"]):
         fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
-                                         progress=not args.quiet, fit_correlation_factor=args.fit_kappa)
+                                         progress=not args.quiet)
         summary = {"sequence": seq.name, "pairs": fit.pairs, **fit.config_values(),
                    "log_likelihood_per_pair": fit.log_likelihood,
                    "per_point_model_anees": [result.metrics.get("anees_translation"),

@@ -228,10 +228,9 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     cal = _command(
         sub, "calibrate",
         help="fit the sensor terms of the covariance on a sequence with ground truth",
-        description="Fit the sensor terms of the reported covariance (frame_sigma_rot_deg, frame_sigma_trans_m "
-        "and the frame-level terms timing_sigma_s, rolling_shutter_factor, latency_sigma_s; with --fit-kappa also "
-        "correlation_factor, else it stays 1; see covo_gtsam.calibration) by maximum likelihood on the consecutive "
-        "frame pairs "
+        description="Fit the sensor terms of the reported covariance (correlation_factor, frame_sigma_rot_deg, "
+        "frame_sigma_trans_m and the frame-level terms timing_sigma_s, rolling_shutter_factor, latency_sigma_s; see "
+        "covo_gtsam.calibration) by maximum likelihood on the consecutive frame pairs "
         "of a sequence with ground truth, for a sensor other than the Kinect v1 the defaults belong to. Runs "
         "the odometry with the per-point model alone into OUT/per_point_run, writes OUT/calibration.json and "
         "prints the configuration lines. Needs SciPy.",
@@ -241,9 +240,6 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
                      help="only the first N frames (at least 11; default: all)")
     cal.add_argument("--config", metavar="FILE",
                      help="TOML or JSON settings for the run; its sensor terms are ignored (see README)")
-    cal.add_argument("--fit-kappa", action="store_true",
-                     help="also fit correlation_factor (default: 1, the per-point model as it is; it trades off "
-                          "against the latency term, docs/cross_validation.md)")
     _output_arguments(cal, plots=False)
     cal.set_defaults(func=handlers["calibrate"])
     return parser

@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from .calibration import latency_basis, timing_covariance
+from .calibration import TwistChanges, timing_covariance
 from .camera import Camera
 from .choices import MotionModel
 from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
@@ -77,6 +77,7 @@ class VisualOdometry(DeprecatedStepAccess):
         self._lost_run = 0  # consecutive lost frames since the last posed one
         self._last_stamp: float | None = None  # of the last registered frame
         self._integrity = IntegrityScale()
+        self._twist_changes = TwistChanges()
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
         self._clock_offset: float | None = None  # offset of the frame being registered from the frame clock
         self._placed_offsets: list[float] = []  # clock offsets of the frames the clock placed
@@ -225,8 +226,10 @@ class VisualOdometry(DeprecatedStepAccess):
             last = self._last.step
             if step.timestamp > last.timestamp:
                 self._velocity = (last.pose.between(step.pose), step.timestamp - last.timestamp)
+            self._add_twist_change(last, step)
         elif step.status is StepStatus.NEW_SEGMENT:
             self._velocity = None
+            self._twist_changes.clear()
         if step.has_pose:
             self._last = _PosedFrame(frame, step)
             if step.status is not StepStatus.RELATIVE_POSE or not self.config.tracking.keyframes:
@@ -375,6 +378,17 @@ class VisualOdometry(DeprecatedStepAccess):
         step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, step.relative,
                                                   step.covariance)
 
+    def _add_twist_change(self, last: OdometryStep, step: OdometryStep) -> None:
+        """The change of the twist from ``last``'s pair to ``step``'s into the latency term's history
+        (both pairs with a twist and a per-point covariance, ``step`` starting at ``last``)."""
+        if (step.velocity is None or last.velocity is None or step.ref_timestamp != last.timestamp
+                or step.result is None or last.result is None):
+            return
+        kappa = self.config.sensor.correlation_factor
+        self._twist_changes.add(step.result.pose.matrix(), last.velocity, step.velocity,
+                                kappa * last.result.covariance, kappa * step.result.covariance,
+                                step.timestamp - last.timestamp)
+
     def _capture_interval(self, ref_step: OdometryStep, timestamp: float) -> tuple[float, float, float]:
         """``(dt, r_ref, r_cur)``: the time between the two frames' captures (s) and the clock offsets
         (s) used to move the pose to the stamps. The stamps' difference corrected by the frame clock;
@@ -404,10 +418,7 @@ class VisualOdometry(DeprecatedStepAccess):
             return bases  # no motion: no timing terms
         twist_ref, velocity = twists
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
-        # the twist at each frame: the mean twist of the pair ending there (both half an interval
-        # late, which cancels in their change); without a previous pair the reference is taken at rest
-        bases["latency"] = (latency_basis(M, ref_step.velocity, velocity) if ref_step.velocity is not None
-                            else np.outer(velocity, velocity))
+        bases["latency"] = self._twist_changes.basis()  # from the pairs before this one
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
         # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
         n_cur = self._clock.samples if self._clock_offset is not None else 0

@@ -121,7 +121,7 @@ def test_latency_term_matches_monte_carlo_of_a_common_stamp_delay():
     smaller error than independent ones (the timing term) when the twist hardly changes."""
     import gtsam
 
-    from covo_gtsam.calibration import latency_basis, timing_covariance
+    from covo_gtsam.calibration import latency_basis, twist_change
 
     xi0 = np.array([0.3, -1.2, 0.5, 0.05, 0.2, -0.1])  # rad/s, m/s
     acc = np.array([-2.0, 3.5, 1.0, 0.15, -0.2, 0.05])  # rad/s^2, m/s^2
@@ -132,22 +132,63 @@ def test_latency_term_matches_monte_carlo_of_a_common_stamp_delay():
     def twist(t: float, h: float = 1e-6) -> np.ndarray:
         return gtsam.Pose3.Logmap(pose(t - h).between(pose(t + h))) / (2 * h)
 
-    t0, t1, s = 0.0, 0.3, 0.01  # a keyframe pair: the frames' axes differ by 0.5 rad
+    t0, t1, s = 0.0, 0.3, 0.01  # a keyframe pair: the frames' axes differ by 0.28 rad
     T = pose(t0).between(pose(t1))
     rng = np.random.default_rng(8)
     errs = np.array([gtsam.Pose3.Logmap(T.between(pose(t0 + L).between(pose(t1 + L))))
                      for L in rng.normal(0, s, size=20000)])
     B = latency_basis(T.matrix(), twist(t0), twist(t1))
     np.testing.assert_allclose(np.cov(errs.T), s**2 * B, atol=0.05 * s**2 * np.abs(B).max())
-    assert np.linalg.matrix_rank(B, tol=1e-9 * np.abs(B).max()) == 1
+    # one fixed delay: the pair moves by L b, sign included
+    b = twist_change(T.matrix(), twist(t0), twist(t1))
+    L = 0.002
+    moved = gtsam.Pose3.Logmap(T.between(pose(t0 + L).between(pose(t1 + L))))
+    np.testing.assert_allclose(moved, L * b, atol=0.02 * L * np.abs(b).max())
+    # the wrong conventions fail that check: no adjoint, the adjoint of T, the roles swapped
+    Ad_inv, Ad = T.inverse().AdjointMap(), T.AdjointMap()
+    for wrong in (twist(t1) - twist(t0), twist(t1) - Ad @ twist(t0), twist(t0) - Ad @ twist(t1)):
+        assert not np.allclose(moved, L * wrong, atol=0.02 * L * np.abs(b).max())
+    assert not np.allclose(moved, -L * b, atol=0.02 * L * np.abs(b).max())
+    assert np.allclose(Ad_inv @ Ad, np.eye(6))
     # the same twist at both frames (constant velocity): the common delay cancels to first order
     xi = twist(t0)
     T_cv = gtsam.Pose3.Expmap(xi / 30)
-    assert np.abs(latency_basis(T_cv.matrix(), xi, xi)).max() < 1e-12
-    assert np.abs(timing_covariance(np.stack([xi, xi]))).max() > 0.1
-    # a wrong adjoint (the reference twist not carried into the current frame) fails the check
-    b_wrong = twist(t1) - twist(t0)
-    assert not np.allclose(np.cov(errs.T), s**2 * np.outer(b_wrong, b_wrong), atol=0.05 * s**2 * np.abs(B).max())
+    assert np.abs(latency_basis(T_cv.matrix(), xi, xi)).max() < 1e-12 * np.abs(xi).max() ** 2
+
+
+def test_twist_changes_subtract_the_estimation_noise_and_use_only_past_pairs():
+    """The latency term's basis: from changes of pair twists that are estimation noise alone (a
+    constant twist, each pair's twist drawn with its per-point covariance over dt^2) it stays far
+    below the raw outer products; from a real change well above the noise it is that change's
+    outer product (rotation block); it is the mean of the pairs added before, none after."""
+    from covo_gtsam.calibration import TwistChanges
+
+    rng = np.random.default_rng(3)
+    dt = 1 / 30
+    C = np.diag([1e-5] * 3 + [1e-5] * 3)  # per-point covariance of a pair (rad^2, m^2)
+    xi0 = np.array([0.2, -1.0, 0.3, 0.05, 0.0, 0.1])
+    T = np.eye(4)
+    tc = TwistChanges(window=1000)
+    assert np.all(tc.basis() == 0)
+    twists = xi0 + rng.normal(size=(501, 6)) * np.sqrt(np.diag(C)) / dt
+    raw = np.zeros((6, 6))
+    for a, b in zip(twists[:-1], twists[1:]):
+        tc.add(T, a, b, C, C, dt)
+        raw += np.outer(b - a, b - a) / 500
+    noise_only = tc.basis()
+    assert np.trace(noise_only) < 0.3 * np.trace(raw[:3, :3])
+    assert np.all(noise_only[3:] == 0) and np.all(noise_only[:, 3:] == 0)
+    assert np.linalg.eigvalsh(noise_only).min() >= -1e-15
+    # a real change of the angular velocity, 20 times the noise, every pair
+    tc = TwistChanges(window=10)
+    delta = np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.0]) * 20 * np.sqrt(C[0, 0]) / dt
+    for k in range(10):
+        tc.add(T, xi0 + (k % 2) * delta, xi0 + ((k + 1) % 2) * delta, C, C, dt)
+    expected = np.outer(delta, delta)
+    np.testing.assert_allclose(tc.basis(), expected, atol=0.1 * expected.max())
+    before = tc.basis()
+    tc.add(T, xi0, xi0 + 5 * delta, C, C, dt)  # only the next pair sees this change
+    assert not np.allclose(tc.basis(), before)
 
 
 @pytest.mark.slow
