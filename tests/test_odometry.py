@@ -178,3 +178,30 @@ def test_frame_term_grows_with_the_frame_intervals_a_pair_spans(sample_dir):
         np.testing.assert_allclose(step.covariance, cfg.sensor.correlation_factor * step.result.covariance + frame,
                                    rtol=1e-12)
     assert cfg.frame_intervals(0.0) == 1 and cfg.frame_intervals(0.040) == 1 and cfg.frame_intervals(0.1) == 3
+
+
+def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
+    """A pair's latency basis is built from the twist changes of the pairs before it, never from
+    its own estimate (whose error would then enter its own covariance): two runs that share frames
+    0-5 and then see different frames give their next pairs the same basis although those pairs'
+    twists differ; the basis is zero for the first two pairs (no change seen yet) and the next
+    pair's basis includes the change the pair brought."""
+    from covo_gtsam.datasets.images import load_depth
+    from covo_gtsam.datasets.tum import TumSequence
+
+    seq = TumSequence(sample_dir)
+    frames = [(cv2.imread(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i]) for i in range(9)]
+
+    def run(indices):
+        vo = VisualOdometry(seq.camera)
+        return [vo.register_frame(*frames[i]) for i in indices]
+
+    a, b = run([0, 1, 2, 3, 4, 5, 6, 7]), run([0, 1, 2, 3, 4, 5, 7, 8])  # b skips frame 6
+    assert all(s.status == "tracked" for s in a[1:] + b[1:])
+    assert np.all(a[1].error_bases["latency"] == 0) and np.all(a[2].error_bases["latency"] == 0)
+    assert np.abs(a[3].error_bases["latency"]).max() > 0
+    for k in range(1, 6):
+        assert np.array_equal(a[k].error_bases["latency"], b[k].error_bases["latency"])
+    assert not np.allclose(a[6].velocity, b[6].velocity)
+    np.testing.assert_array_equal(a[6].error_bases["latency"], b[6].error_bases["latency"])
+    assert not np.allclose(a[7].error_bases["latency"], b[7].error_bases["latency"])
