@@ -380,9 +380,10 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _add_twist_change(self, last: OdometryStep, step: OdometryStep) -> None:
         """The change of the twist from ``last``'s pair to ``step``'s into the latency term's history
-        (both pairs with a twist and a per-point covariance, ``step`` starting at ``last``)."""
+        (both pairs with a twist and a per-point covariance, ``step`` starting at ``last``, neither
+        flagged by the integrity check)."""
         if (step.velocity is None or last.velocity is None or step.ref_timestamp != last.timestamp
-                or step.result is None or last.result is None):
+                or step.result is None or last.result is None or step.flagged or last.flagged):
             return
         kappa = self.config.sensor.correlation_factor
         self._twist_changes.add(step.result.pose.matrix(), last.velocity, step.velocity,

@@ -182,7 +182,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     order_ok = np.all(np.diff(stamps) > 0)
     if not order_ok:  # keep the stamps in time order, as a driver does
         stamps = np.maximum.accumulate(stamps) + np.arange(cfg.frames) * 1e-6
-        stamp_offsets = stamps - captures - cfg.stamp_latency_s
+        stamp_offsets = stamps - captures - cfg.stamp_latency_s  # the jitter part
     bad = rng.uniform(size=cfg.frames) < cfg.bad_frame_rate
     bad[:2] = False  # the run's first pairs set the integrity scale
     steps, frame_bad = [], []
