@@ -9,7 +9,9 @@
 3. CPU of a whole run in this process (:func:`covo_gtsam.pipeline.run_sequence`, progress bar and
    output files included, no figures): CPU seconds per frame of the process, of the main thread
    and of the prefetch workers (``time.thread_time``); the rest is threads Python does not see
-   (OpenCV's and BLAS's own) and thread start-up.
+   (OpenCV's and BLAS's own) and thread start-up. Then the same run with every frame prepared on
+   the main thread when it is needed (:class:`SerialPool`): same work, no overlap, so it varies
+   less with what else the machine runs.
 4. Where that CPU goes: the same run under ``cProfile`` with a CPU clock per thread
    (``time.thread_time``), main thread and workers merged, summed by stage (each stage the
    inclusive time of the functions named in :data:`STAGES`; "other" is the rest: Python glue,
@@ -35,7 +37,7 @@ import tempfile
 import threading
 import time
 from collections import defaultdict, deque
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import gtsam
 import numpy as np
@@ -217,11 +219,47 @@ def watched_workers(profile: bool):
         pipeline._load_frame = original
 
 
-def in_process_run(seq, n: int, profile: bool = False) -> dict:
+class SerialPool:
+    """Stands in for the run's prefetch pool: each frame is decoded and prepared when it is
+    submitted, on the submitting (main) thread, so no two stages overlap."""
+
+    def __init__(self, max_workers: int | None = None) -> None:
+        pass
+
+    def __enter__(self) -> SerialPool:
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        return False
+
+    def submit(self, fn, *args) -> Future:
+        future = Future()
+        try:
+            future.set_result(fn(*args))
+        except BaseException as exc:  # as a pool hands it back
+            future.set_exception(exc)
+        return future
+
+
+@contextlib.contextmanager
+def serial_frames(on: bool):
+    """With ``on``, :func:`run_sequence` prepares its frames on the main thread (:class:`SerialPool`)."""
+    original = pipeline.ThreadPoolExecutor
+    if on:
+        pipeline.ThreadPoolExecutor = SerialPool
+    try:
+        yield
+    finally:
+        pipeline.ThreadPoolExecutor = original
+
+
+def in_process_run(seq, n: int, profile: bool = False, serial: bool = False) -> dict:
     """One `covo run` (no figures) in this process: wall, process CPU, main-thread and worker CPU
-    (seconds), and with ``profile`` the merged ``pstats.Stats`` of all threads."""
+    (seconds), and with ``profile`` the merged ``pstats.Stats`` of all threads. ``serial``: the
+    frames prepared on the main thread (:func:`serial_frames`; "workers" is then their share of
+    the main thread's CPU)."""
     with tempfile.TemporaryDirectory() as out, watched_workers(profile) as (workers, profiles), \
-            contextlib.redirect_stderr(io.StringIO()):  # the progress bar runs, unseen
+            serial_frames(serial), contextlib.redirect_stderr(io.StringIO()):  # the progress bar runs, unseen
         main = cProfile.Profile(time.thread_time) if profile else None
         wall, cpu, thread = time.perf_counter(), time.process_time(), time.thread_time()
         if main is not None:
@@ -298,6 +336,11 @@ def main() -> None:
     print(f"  process {r['process'] * ms:.1f} = main thread {r['main'] * ms:.1f} + prefetch workers "
           f"{r['workers'] * ms:.1f} + other threads (OpenCV, BLAS, start-up) "
           f"{(r['process'] - r['main'] - r['workers']) * ms:.1f}")
+    runs = [in_process_run(seq, n, serial=True) for _ in range(3)]
+    r = sorted(runs, key=lambda x: x["process"])[1]
+    print(f"the same with the frames prepared on the main thread (no overlap; on a shared machine the "
+          f"steadier figure to compare versions by): process {r['process'] * ms:.1f} = frame pairs and output "
+          f"{(r['main'] - r['workers']) * ms:.1f} + decoding and preparing {r['workers'] * ms:.1f}")
     prof = in_process_run(seq, n, profile=True)
     stages = stage_profile(prof["stats"])
     total = sum(stages.values())

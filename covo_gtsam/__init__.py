@@ -8,12 +8,8 @@ and ``covo --help`` stay quick)::
 """
 
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
 
-try:
-    __version__ = version("covo-gtsam")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree without installing
-    __version__ = "unknown"
+from ._version import __version__
 
 #: public name -> module that holds it
 _PUBLIC = {

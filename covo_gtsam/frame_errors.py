@@ -54,7 +54,7 @@ def depth_rates(X: np.ndarray, twist: np.ndarray) -> np.ndarray:
     """Rate of change (N,) of the depth of static points ``X`` (N, 3) seen by a camera moving with
     body twist ``[omega, v]`` (rad/s, m/s): the z row of ``-(omega x X + v)``, m/s."""
     twist = np.asarray(twist, dtype=float).reshape(6)
-    return -(np.cross(twist[:3], X)[:, 2] + twist[5])
+    return -((twist[0] * X[:, 1] - twist[1] * X[:, 0]) + twist[5])  # the z row of np.cross(omega, X)
 
 
 def depth_time_shift(X: np.ndarray, twist: np.ndarray, offset_s: float) -> np.ndarray:

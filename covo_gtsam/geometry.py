@@ -29,6 +29,19 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross(a, b)`` of 3-vectors along the last axis (shapes that broadcast, e.g. (3,) and
+    (N, 3)): the same products and differences, so the same values, without ``np.cross``'s axis
+    handling (about half its time on a frame's points)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices from quaternions ``(qx, qy, qz, qw)``; (..., 4) -> (..., 3, 3).
 
@@ -171,7 +184,7 @@ def image_velocities(X: np.ndarray, twist: np.ndarray, fx: float, fy: float) -> 
     """Image-plane velocities (N, 2; px/s) of static points ``X`` (N, 3; camera frame, metres) seen
     by a camera moving with body twist ``[omega, v]`` (rad/s, m/s); pinhole, no distortion."""
     twist = np.asarray(twist, dtype=float).reshape(6)
-    Xd = -(np.cross(twist[:3], X) + twist[3:])
+    Xd = -(cross(twist[:3], X) + twist[3:])
     z = X[:, 2]
     return np.stack([fx * (Xd[:, 0] * z - X[:, 0] * Xd[:, 2]) / z**2,
                      fy * (Xd[:, 1] * z - X[:, 1] * Xd[:, 2]) / z**2], axis=1)

@@ -23,6 +23,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import InputError
+from .geometry import cross
 
 _HALF_PI = np.pi / 2.0
 #: Angles are clipped below 90 deg so the hyperbolic terms stay finite (radians).
@@ -185,7 +186,7 @@ def surface_angles(
     zc, zs = z[0], z.T
     ok &= np.all(zs > 0, axis=1)
     ok &= np.all(np.abs(zs[:, 1:] - zc[:, None]) < max_jump * np.maximum(zc[:, None], 1e-9), axis=1)
-    normal = np.cross(pr - pl, pd - pu)
+    normal = cross(pr - pl, pd - pu)
     norm = np.linalg.norm(normal, axis=1) * np.linalg.norm(pc, axis=1)
     ok &= norm > 0
     cosang = np.abs(np.einsum("ij,ij->i", normal, pc)) / np.where(ok, norm, 1.0)

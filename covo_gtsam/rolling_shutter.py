@@ -21,6 +21,7 @@ import gtsam
 import numpy as np
 
 from .errors import InputError
+from .geometry import cross
 
 
 def row_time_offsets(v: np.ndarray, height: int, readout_s: float) -> np.ndarray:
@@ -45,7 +46,7 @@ def compensate_points(
     X = np.asarray(X, dtype=float)
     twist = np.asarray(twist, dtype=float).reshape(6)
     d = row_time_offsets(v, height, readout_s)[:, None]
-    return X + d * (np.cross(twist[:3], X) + twist[3:])
+    return X + d * (cross(twist[:3], X) + twist[3:])
 
 
 def frame_twists(T_ref_cur: gtsam.Pose3, dt: float, ref_velocity: np.ndarray | None = None

@@ -51,8 +51,11 @@ def load_grey(path: str | os.PathLike) -> np.ndarray:
 
 
 #: libpng's grey of an RGB pixel, as OpenCV asks for it (``png_set_rgb_to_gray(.., 0.299, 0.587)``):
-#: ``(9797 R + 19234 G + 3737 B) >> 15``; the weights over 2^15 (float32, exact for 8-bit values).
-_PNG_GREY_WEIGHTS = np.array([[9797.0, 19234.0, 3737.0]], np.float32) / np.float32(32768.0)
+#: ``(9797 R + 19234 G + 3737 B) >> 15``, as ``cv2.transform`` of int32 pixels computes it: the
+#: weights over 2^15 and an offset of ``2^-16 - 1/2`` (all exact in double precision), rounded to
+#: the nearest integer, which is the floor of the weighted sum (its fraction, a multiple of 2^-15,
+#: never rounds as a tie). Checked against the shift for every 8-bit RGB value.
+_PNG_GREY_WEIGHTS = np.array([[9797.0, 19234.0, 3737.0, 0.5 - 16384.0]]) / 32768.0
 
 
 def _png_bytes(path: str, formats: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, int] | None:
@@ -140,10 +143,13 @@ def _png_grey(path: str) -> np.ndarray | None:
     pixels, colour_type = found
     if colour_type == 0:
         return pixels[:, :, 0].astype(np.uint8)
-    rgb = _png_scratch("a", pixels.shape, np.float32)  # slot "a" is free again, "b" holds the pixels
-    np.copyto(rgb, pixels, casting="unsafe")  # byte values 0-255
-    grey = cv2.transform(rgb, _PNG_GREY_WEIGHTS, dst=_png_scratch("b", pixels.shape[:2], np.float32))
-    return grey.astype(np.uint8)  # truncation: libpng's ">> 15"
+    if pixels.dtype == np.int32:  # "Sub" rows undone: int32 byte values in slot "b"; "a" is free again
+        rgb, out = pixels, "a"
+    else:  # unfiltered rows: the file's bytes
+        rgb, out = _png_scratch("a", pixels.shape, np.int32), "b"
+        np.copyto(rgb, pixels)
+    grey = cv2.transform(rgb, _PNG_GREY_WEIGHTS, dst=_png_scratch(out, pixels.shape[:2], np.int32))
+    return grey.astype(np.uint8)  # 0-255: libpng's ">> 15"
 
 
 def load_depth(
@@ -178,7 +184,7 @@ def load_depth(
     if shape is not None and raw.shape != tuple(shape):
         raise InputError(
             f"{p}: depth image is {raw.shape[1]}x{raw.shape[0]}, expected {shape[1]}x{shape[0]}")
-    return raw.astype(np.float32) * np.float32(1.0 / depth_scale)
+    return np.multiply(raw, np.float32(1.0 / depth_scale), dtype=np.float32)  # one pass: the same values
 
 
 def to_grey(image: np.ndarray, bgr: bool = True) -> np.ndarray:
