@@ -78,6 +78,8 @@ class VisualOdometry(DeprecatedStepAccess):
         self._last_stamp: float | None = None  # of the last registered frame
         self._integrity = IntegrityScale()
         self._twist_changes = TwistChanges()
+        #: (reference stamp, stamp) of a pair -> (its twist's noise covariance, its frame intervals)
+        self._twist_noise: dict[tuple[float, float], tuple[np.ndarray, int]] = {}
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
         self._clock_offset: float | None = None  # offset of the frame being registered from the frame clock
         self._placed_offsets: list[float] = []  # clock offsets of the frames the clock placed
@@ -230,6 +232,7 @@ class VisualOdometry(DeprecatedStepAccess):
         elif step.status is StepStatus.NEW_SEGMENT:
             self._velocity = None
             self._twist_changes.clear()
+            self._twist_noise = {}
         if step.has_pose:
             self._last = _PosedFrame(frame, step)
             if step.status is not StepStatus.RELATIVE_POSE or not self.config.tracking.keyframes:
@@ -280,7 +283,10 @@ class VisualOdometry(DeprecatedStepAccess):
             return step
         twists = frame_twists(res.pose, dt, ref_step.velocity) if dt > 0 else None
         step.velocity = None if twists is None else twists[1]
-        step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists)
+        if twists is not None:  # the noise of the pair's twist, for the latency term's history
+            self._twist_noise[ref_step.timestamp, timestamp] = (res.covariance / dt**2,
+                                                                 self.config.sensor.frame_intervals(dt))
+        step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -379,16 +385,18 @@ class VisualOdometry(DeprecatedStepAccess):
                                                   step.covariance)
 
     def _add_twist_change(self, last: OdometryStep, step: OdometryStep) -> None:
-        """The change of the twist from ``last``'s pair to ``step``'s into the latency term's history
-        (both pairs with a twist and a per-point covariance, ``step`` starting at ``last``, neither
-        flagged by the integrity check)."""
-        if (step.velocity is None or last.velocity is None or step.ref_timestamp != last.timestamp
-                or step.result is None or last.result is None or step.flagged or last.flagged):
+        """The change of the twist from ``last``'s pair to ``step``'s into the latency term's history:
+        only two consecutive pairs of one frame interval each (their twists one interval apart),
+        neither flagged by the integrity check. The noise subtracted is each twist's share of the
+        estimator's own covariance, ``C_points / dt^2`` (not scaled by kappa, as in the fit)."""
+        key = (step.ref_timestamp, step.timestamp)
+        noise_ref, noise_cur = self._twist_noise.get((last.ref_timestamp, last.timestamp)), self._twist_noise.get(key)
+        self._twist_noise = {key: noise_cur} if noise_cur is not None else {}
+        if (noise_ref is None or noise_cur is None or noise_ref[1] != 1 or noise_cur[1] != 1
+                or step.ref_timestamp != last.timestamp or step.flagged or last.flagged
+                or step.velocity is None or last.velocity is None):
             return
-        kappa = self.config.sensor.correlation_factor
-        self._twist_changes.add(step.result.pose.matrix(), last.velocity, step.velocity,
-                                kappa * last.result.covariance, kappa * step.result.covariance,
-                                step.timestamp - last.timestamp)
+        self._twist_changes.add(step.result.pose.matrix(), last.velocity, step.velocity, noise_ref[0], noise_cur[0])
 
     def _capture_interval(self, ref_step: OdometryStep, timestamp: float) -> tuple[float, float, float]:
         """``(dt, r_ref, r_cur)``: the time between the two frames' captures (s) and the clock offsets
@@ -407,7 +415,8 @@ class VisualOdometry(DeprecatedStepAccess):
         return dt, r_ref, r_cur
 
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
-                     frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None) -> dict:
+                     frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
+                     dt: float) -> dict:
         """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`); ``twists``
         are the camera's twists at the two frames (:func:`~covo_gtsam.rolling_shutter.frame_twists`),
         None without motion."""
@@ -419,7 +428,8 @@ class VisualOdometry(DeprecatedStepAccess):
             return bases  # no motion: no timing terms
         twist_ref, velocity = twists
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
-        bases["latency"] = self._twist_changes.basis()  # from the pairs before this one
+        # from the pairs before this one; over k frame intervals the twist changes k times as much
+        bases["latency"] = self.config.sensor.frame_intervals(dt) ** 2 * self._twist_changes.basis()
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
         # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
         n_cur = self._clock.samples if self._clock_offset is not None else 0

@@ -157,7 +157,8 @@ def delay_table(data: Path, rpy: dict, desk: dict) -> list[str]:
              "Rotation RMS of the frame-to-frame poses against the ground truth interpolated at the colour "
              "stamps plus a common shift (positive: the ground truth later); the shift with the smallest RMS "
              "on a 2.5 ms grid from -30 to 30 ms.", "",
-             "| pairs | RMS at the stamps (deg) | best shift (ms) | RMS there (deg) |", "|---|---|---|---|"]
+             "| pairs | rotation RMS at the stamps (deg) | best shift (ms) | rotation RMS there (deg) | "
+             "translation RMS at the stamps / there (mm) |", "|---|---|---|---|---|"]
     shifts = np.arange(-30.0, 30.1, 2.5) * 1e-3
     for label, name, p, mask in (("fr1_rpy, frames 1-119", RPY, rpy, rpy["end"] <= 119),
                                  ("fr1_rpy, frames 120-239", RPY, rpy, rpy["end"] >= 120),
@@ -165,14 +166,16 @@ def delay_table(data: Path, rpy: dict, desk: dict) -> list[str]:
         seq = TumSequence(data / "tum" / name)
         stamps, poses = load_tum_trajectory(seq.path / "groundtruth.txt")
         ts, end = np.asarray(seq.timestamps), p["end"][mask]
-        rms = []
+        rms, rms_t = [], []
         for shift in shifts:
             P0, ok0 = interpolate_poses(stamps, poses, ts[end - 1] + shift)
             P1, ok1 = interpolate_poses(stamps, poses, ts[end] + shift)
             xi = relative_pose_tangent_errors(p["T_est"][mask], np.linalg.inv(P0) @ P1)[ok0 & ok1]
             rms.append(np.rad2deg(np.sqrt(np.mean(np.sum(xi[:, :3] ** 2, axis=1)))))
-        best = int(np.argmin(rms))
-        lines.append(f"| {label} | {rms[len(shifts) // 2]:.3f} | {1e3 * shifts[best]:+.1f} | {rms[best]:.3f} |")
+            rms_t.append(1e3 * np.sqrt(np.mean(np.sum(xi[:, 3:] ** 2, axis=1))))
+        best, zero = int(np.argmin(rms)), len(shifts) // 2
+        lines.append(f"| {label} | {rms[zero]:.3f} | {1e3 * shifts[best]:+.1f} | {rms[best]:.3f} | "
+                     f"{rms_t[zero]:.2f} / {rms_t[best]:.2f} |")
     return lines + [""]
 
 

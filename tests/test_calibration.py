@@ -157,38 +157,63 @@ def test_latency_term_matches_monte_carlo_of_a_common_stamp_delay():
 
 
 def test_twist_changes_subtract_the_estimation_noise_and_use_only_past_pairs():
-    """The latency term's basis: from changes of pair twists that are estimation noise alone (a
-    constant twist, each pair's twist drawn with its per-point covariance over dt^2) it stays far
-    below the raw outer products; from a real change well above the noise it is that change's
-    outer product (rotation block); it is the mean of the pairs added before, none after."""
-    from covo_gtsam.calibration import TwistChanges
+    """The latency term's basis from consecutive pairs' twists drawn around a true twist change
+    Delta with anisotropic estimation noise, the later pair rotated against the earlier one: the
+    basis gives back Delta Delta^T (rotation block) within the sampling error; subtracting the
+    noise without carrying the earlier twist's noise by Ad, or three times too much of it, or none,
+    misses it. Pure noise gives a basis far below the raw outer products. The basis is the mean of
+    what was added before."""
+    import gtsam
+
+    from covo_gtsam.calibration import TwistChanges, twist_change
 
     rng = np.random.default_rng(3)
-    dt = 1 / 30
-    C = np.diag([1e-5] * 3 + [1e-5] * 3)  # per-point covariance of a pair (rad^2, m^2)
-    xi0 = np.array([0.2, -1.0, 0.3, 0.05, 0.0, 0.1])
-    T = np.eye(4)
-    tc = TwistChanges(window=1000)
+    T = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.0, 0.0, 1.2), np.array([0.1, 0.0, 0.0]))  # a large turn
+    Ad = T.inverse().AdjointMap()
+    N_ref = np.diag([4.0, 0.25, 1.0, 1.0, 1.0, 1.0]) * 0.01  # (rad/s)^2, (m/s)^2: noise of each twist
+    N_cur = np.diag([0.25, 1.0, 4.0, 1.0, 1.0, 1.0]) * 0.01
+    xi_ref = np.array([0.2, -1.0, 0.3, 0.05, 0.0, 0.1])
+    delta = np.array([0.3, 0.1, -0.2, 0.0, 0.0, 0.0])  # rad/s: the true change, about the noise's size
+    xi_cur = Ad @ xi_ref + delta
+    n = 20000
+    a = xi_ref + rng.multivariate_normal(np.zeros(6), N_ref, n)
+    b = xi_cur + rng.multivariate_normal(np.zeros(6), N_cur, n)
+
+    def basis(noise_ref, noise_cur, pairs=n):
+        tc = TwistChanges(window=pairs)
+        for x, y in zip(a[:pairs], b[:pairs]):
+            tc.add(T.matrix(), x, y, noise_ref, noise_cur)
+        return tc.basis()
+
+    expected = np.zeros((6, 6))
+    expected[:3, :3] = np.outer(delta[:3], delta[:3])
+    got = basis(N_ref, N_cur)
+    np.testing.assert_allclose(got, expected, atol=0.006)  # sampling error about 0.002
+    assert np.all(got[3:] == 0) and np.all(got[:, 3:] == 0)
+    tol = 0.006
+    assert np.abs(basis(np.zeros((6, 6)), np.zeros((6, 6))) - expected).max() > 3 * tol  # no subtraction
+    assert np.abs(basis(3 * N_ref, 3 * N_cur) - expected).max() > 3 * tol  # too much
+    # without Ad: the earlier twist's noise subtracted in the wrong axes
+    tc = TwistChanges(window=n)
+    for x, y in zip(a, b):
+        X = np.outer(twist_change(T.matrix(), x, y), twist_change(T.matrix(), x, y)) - (N_cur + N_ref)
+        tc._changes.append(np.pad(X[:3, :3], ((0, 3), (0, 3))))
+    assert np.abs(tc.basis() - expected).max() > 3 * tol
+    # pure noise (no change): far below the raw outer products
+    noise_only = TwistChanges(window=n)
+    raw = np.zeros((3, 3))
+    for x, y in zip(a[:2000], (Ad @ xi_ref) + rng.multivariate_normal(np.zeros(6), N_cur, 2000)):
+        noise_only.add(T.matrix(), x, y, N_ref, N_cur)
+        d = twist_change(T.matrix(), x, y)[:3]
+        raw += np.outer(d, d) / 2000
+    assert np.trace(noise_only.basis()) < 0.1 * np.trace(raw)
+    # the mean of what was added before, nothing else
+    tc = TwistChanges(window=2)
     assert np.all(tc.basis() == 0)
-    twists = xi0 + rng.normal(size=(501, 6)) * np.sqrt(np.diag(C)) / dt
-    raw = np.zeros((6, 6))
-    for a, b in zip(twists[:-1], twists[1:]):
-        tc.add(T, a, b, C, C, dt)
-        raw += np.outer(b - a, b - a) / 500
-    noise_only = tc.basis()
-    assert np.trace(noise_only) < 0.3 * np.trace(raw[:3, :3])
-    assert np.all(noise_only[3:] == 0) and np.all(noise_only[:, 3:] == 0)
-    assert np.linalg.eigvalsh(noise_only).min() >= -1e-15
-    # a real change of the angular velocity, 20 times the noise, every pair
-    tc = TwistChanges(window=10)
-    delta = np.array([0.0, 1.0, 0.0, 0.0, 0.0, 0.0]) * 20 * np.sqrt(C[0, 0]) / dt
-    for k in range(10):
-        tc.add(T, xi0 + (k % 2) * delta, xi0 + ((k + 1) % 2) * delta, C, C, dt)
-    expected = np.outer(delta, delta)
-    np.testing.assert_allclose(tc.basis(), expected, atol=0.1 * expected.max())
-    before = tc.basis()
-    tc.add(T, xi0, xi0 + 5 * delta, C, C, dt)  # only the next pair sees this change
-    assert not np.allclose(tc.basis(), before)
+    tc.add(T.matrix(), a[0], b[0], N_ref, N_cur)
+    first = tc.basis()
+    tc.add(T.matrix(), a[1], b[1], N_ref, N_cur)
+    assert not np.allclose(tc.basis(), first)
 
 
 @pytest.mark.slow
