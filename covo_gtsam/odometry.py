@@ -439,17 +439,19 @@ class VisualOdometry(DeprecatedStepAccess):
         h_cur = frame.depth_offset * depth_time_basis(G_cur, X_cur, velocity)
         bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)
         if self.config.sensor.rolling_shutter_s > 0:
-            # the twist at the current frame may differ from the pair's mean by half its change
-            # since the previous pair; without a previous pair, by half of itself (both frames)
+            # the twist at the current frame may differ from the pair's mean by half the change of
+            # the twist over the pair: its size from the recent pairs (as the latency term's, not
+            # from this pair's own twist, whose error would enter its own covariance); without a
+            # previous pair, by half of the twist itself (both frames)
             rows_cur = row_time_offsets(pairs.uv_cur[:, 1], self.camera.height, self.config.sensor.rolling_shutter_s)
             B = rolling_shutter_basis(G_cur, X_cur, rows_cur)
             if ref_step.velocity is not None:
-                u = B @ (0.5 * (velocity - np.asarray(ref_step.velocity)))
+                bases["rolling_shutter"] = 0.25 * B @ bases["latency"] @ B.T
             else:
                 rows_ref = row_time_offsets(pairs.uv_ref[:, 1], self.camera.height,
                                             self.config.sensor.rolling_shutter_s)
                 u = (B + rolling_shutter_basis(G_ref, X_ref, rows_ref)) @ (0.5 * velocity)
-            bases["rolling_shutter"] = np.outer(u, u)
+                bases["rolling_shutter"] = np.outer(u, u)
         return bases
 
     def _to_frame_time(self, fd: FrameData, X: np.ndarray, uv: np.ndarray, twist: np.ndarray) -> np.ndarray:

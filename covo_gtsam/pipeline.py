@@ -362,6 +362,7 @@ def calibrate_sequence(
     max_frames: int | None = None,
     progress: bool = True,
     terms=None,
+    fit_correlation_factor: bool = False,
 ):
     """Fit the sensor terms (:func:`covo_gtsam.calibration.fit_sensor_terms`) on a sequence with
     ground truth.
@@ -369,7 +370,8 @@ def calibrate_sequence(
     Runs the odometry with the per-point model alone (``config`` with ``correlation_factor = 1``
     and every other term zero, frame to frame) into ``out_dir`` and fits the consecutive pairs
     (one frame interval) that have ground truth, with the frame-level terms named in ``terms``
-    (:data:`~covo_gtsam.calibration.DEFAULT_TERMS` if None). Pairs the integrity check flagged are
+    (:data:`~covo_gtsam.calibration.DEFAULT_TERMS` if None); ``correlation_factor`` stays 1 (the
+    per-point model as it is) unless ``fit_correlation_factor``. Pairs the integrity check flagged are
     left out (their data is suspect), and so are the pairs of the first frames, which the frame
     clock has not placed yet; the prior terms (:data:`~covo_gtsam.calibration.PRIOR_TERMS`) are
     held at ``config``'s values. Returns ``(SensorTerms, RunResult)``.
@@ -397,7 +399,7 @@ def calibrate_sequence(
     if len(T_est) < 10:
         raise InputError(f"{seq.path}: the fit needs at least 10 consecutive tracked frame pairs with usable ground "
                          f"truth at both frames, got {len(T_est)} (of {len(consecutive)} consecutive tracked pairs)")
-    return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs,
+    return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs, fit_correlation_factor,
                             bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),
                             fixed=prior_covariances(consecutive, priors)), result
 

@@ -43,9 +43,9 @@ POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_
 #: covariance models compared: whether kappa is fitted, and the frame-level terms each fits
 MODELS = {"kappa + frame term": (True, ()), "+ timing": (True, ("timing",)),
           "+ timing, rolling shutter": (True, ("timing", "rolling_shutter")),
-          "+ timing, rolling shutter, latency (default)": (True, DEFAULT_TERMS),
-          "+ latency, kappa 1": (False, DEFAULT_TERMS),
-          "+ latency, depth scale, depth time": (True, DEFAULT_TERMS + ("depth_scale", "depth_time"))}
+          "+ timing, rolling shutter, latency": (True, DEFAULT_TERMS),
+          "+ latency, kappa 1 (default)": (False, DEFAULT_TERMS),
+          "+ latency, depth scale, depth time; kappa 1": (False, DEFAULT_TERMS + ("depth_scale", "depth_time"))}
 CHAIN = 30
 
 

@@ -96,7 +96,9 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
         return steps[-1]
 
     base, off, off_ignored = run(0.0, 1.0), run(0.02, 1.0), run(0.02, 0.0)
-    assert off.covariance[3:, 3:].trace() > 1.05 * base.covariance[3:, 3:].trace()
+    # the estimator's covariance (the reported one adds frame-level terms that depend on the run's
+    # recent motion estimates, which the offsets also move)
+    assert off.result.covariance[3:, 3:].trace() > 1.05 * base.result.covariance[3:, 3:].trace()
     np.testing.assert_allclose(off_ignored.covariance, base.covariance, rtol=1e-12, atol=1e-18)
 
 

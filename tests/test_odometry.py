@@ -200,6 +200,11 @@ def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
     a, b = run([0, 1, 2, 3, 4, 5, 6, 7]), run([0, 1, 2, 3, 4, 5, 7, 8])  # b skips frame 6
     assert all(s.status == "tracked" for s in a[1:] + b[1:])
     assert np.all(a[1].error_bases["latency"] == 0) and np.all(a[2].error_bases["latency"] == 0)
+    # the rolling-shutter residual takes the size of the twist's change from the same history: none
+    # yet for the second pair (the first, without a previous pair, takes half its own twist)
+    assert np.abs(a[1].error_bases["rolling_shutter"]).max() > 0
+    assert np.all(a[2].error_bases["rolling_shutter"] == 0)
+    assert np.abs(a[3].error_bases["rolling_shutter"]).max() > 0
     assert np.abs(a[3].error_bases["latency"]).max() > 0
     for k in range(1, 6):
         assert np.array_equal(a[k].error_bases["latency"], b[k].error_bases["latency"])
