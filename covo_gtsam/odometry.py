@@ -428,8 +428,11 @@ class VisualOdometry(DeprecatedStepAccess):
             return bases  # no motion: no timing terms
         twist_ref, velocity = twists
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
-        # from the pairs before this one; over k frame intervals the twist changes k times as much
-        bases["latency"] = self.config.sensor.frame_intervals(dt) ** 2 * self._twist_changes.basis()
+        # the covariance of the twist's change over the pair, from the pairs before this one (over k
+        # frame intervals the twist changes k times as much): the latency term's basis, and the
+        # rolling-shutter term's below
+        change_cov = self.config.sensor.frame_intervals(dt) ** 2 * self._twist_changes.basis()
+        bases["latency"] = change_cov
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
         # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
         n_cur = self._clock.samples if self._clock_offset is not None else 0
@@ -446,7 +449,7 @@ class VisualOdometry(DeprecatedStepAccess):
             rows_cur = row_time_offsets(pairs.uv_cur[:, 1], self.camera.height, self.config.sensor.rolling_shutter_s)
             B = rolling_shutter_basis(G_cur, X_cur, rows_cur)
             if ref_step.velocity is not None:
-                bases["rolling_shutter"] = 0.25 * B @ bases["latency"] @ B.T
+                bases["rolling_shutter"] = 0.25 * B @ change_cov @ B.T
             else:
                 rows_ref = row_time_offsets(pairs.uv_ref[:, 1], self.camera.height,
                                             self.config.sensor.rolling_shutter_s)

@@ -177,12 +177,12 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     vo = VisualOdometry(camera, odometry)
 
     captures = np.arange(cfg.frames) * cfg.period_s
-    stamp_offsets = rng.normal(0.0, cfg.stamp_jitter_s, cfg.frames)
-    stamps = captures + cfg.stamp_latency_s + stamp_offsets
+    stamp_offsets = cfg.stamp_latency_s + rng.normal(0.0, cfg.stamp_jitter_s, cfg.frames)
+    stamps = captures + stamp_offsets
     order_ok = np.all(np.diff(stamps) > 0)
     if not order_ok:  # keep the stamps in time order, as a driver does
         stamps = np.maximum.accumulate(stamps) + np.arange(cfg.frames) * 1e-6
-        stamp_offsets = stamps - captures - cfg.stamp_latency_s  # the jitter part
+        stamp_offsets = stamps - captures
     bad = rng.uniform(size=cfg.frames) < cfg.bad_frame_rate
     bad[:2] = False  # the run's first pairs set the integrity scale
     steps, frame_bad = [], []
@@ -219,6 +219,6 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     return SequenceSimulationResult(
         errors=np.array(errors).reshape(-1, 6), covariances=np.array(covs).reshape(-1, 6, 6),
         flagged=np.array(flagged, bool), bad=np.array(pair_bad, bool), quality=np.array(quality),
-        true_stamp_offsets=stamp_offsets + cfg.stamp_latency_s, clock_offsets=np.array([s.clock_offset for s in steps]),
+        true_stamp_offsets=stamp_offsets, clock_offsets=np.array([s.clock_offset for s in steps]),
         clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.has_pose), config=cfg,
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool))
