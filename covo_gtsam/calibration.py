@@ -60,9 +60,8 @@ __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
                "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s",
                "latency": "latency_sigma_s"}
-#: The terms of the default model (the others fitted unstably across the halves of the shared
-#: fr1_rpy frames; docs/cross_validation.md).
-DEFAULT_TERMS = ("timing", "rolling_shutter", "latency")
+#: The terms of the default model (``stamp_jitter`` is a prior; docs/cross_validation.md).
+DEFAULT_TERMS = ("timing", "rolling_shutter", "latency", "depth_scale", "depth_time")
 #: Terms held at their configured value (a prior) when the others are fitted.
 PRIOR_TERMS = ("stamp_jitter",)
 

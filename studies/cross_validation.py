@@ -40,12 +40,13 @@ RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9
 #: the per-point model alone (sensor settings): no sensor terms
 POINTS_ONLY = dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
                    **{name: 0.0 for name in ERROR_TERMS.values()})
+LATENCY_TERMS = ("timing", "rolling_shutter", "latency")
 #: covariance models compared: whether kappa is fitted, and the frame-level terms each fits
 MODELS = {"kappa + frame term": (True, ()), "+ timing": (True, ("timing",)),
           "+ timing, rolling shutter": (True, ("timing", "rolling_shutter")),
-          "+ timing, rolling shutter, latency": (True, DEFAULT_TERMS),
-          "+ latency, kappa 1 (default)": (False, DEFAULT_TERMS),
-          "+ latency, depth scale, depth time; kappa 1": (False, DEFAULT_TERMS + ("depth_scale", "depth_time"))}
+          "+ timing, rolling shutter, latency": (True, LATENCY_TERMS),
+          "+ latency, kappa 1": (False, LATENCY_TERMS),
+          "+ latency, depth scale, depth time; kappa 1 (default)": (False, DEFAULT_TERMS)}
 CHAIN = 30
 
 

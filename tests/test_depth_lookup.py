@@ -88,9 +88,10 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
 
     seq = TumSequence(sample_dir)
 
-    def run(offset_s, factor):
+    def run(offset_s, factor, depth_time=0.0):
         vo = VisualOdometry("fr1", OdometryConfig().replace(noise={"depth_offset_factor": factor},
-                                                          sensor={"frame_clock": False}))
+                                                          sensor={"frame_clock": False,
+                                                                  "depth_time_factor": depth_time}))
         steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.timestamps[i] + offset_s)
                  for i in range(4)]
         return steps[-1]
@@ -100,6 +101,9 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
     # recent motion estimates, which the offsets also move)
     assert off.result.covariance[3:, 3:].trace() > 1.05 * base.result.covariance[3:, 3:].trace()
     np.testing.assert_allclose(off_ignored.covariance, base.covariance, rtol=1e-12, atol=1e-18)
+    # the frame-level depth-time term (its basis grows with the offset) widens the reported one
+    timed = run(0.02, 0.0, depth_time=0.324)
+    assert timed.covariance[3:, 3:].trace() > 1.02 * off_ignored.covariance[3:, 3:].trace()
 
 
 def test_gauss_hermite_nodes_integrate_the_normal_moments():
