@@ -24,7 +24,7 @@ from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
 from covo_gtsam.pipeline import run_sequence  # noqa: E402
-from covo_gtsam.simulation import SimulationConfig, run_simulation  # noqa: E402
+from covo_gtsam.simulation import SimulationConfig, run_simulation, simulation_result  # noqa: E402
 
 SIM_VARIANTS = {
     "consistent (default)": dict(weighting="consistent", scale=1.0),
@@ -114,6 +114,7 @@ def simulation_tables(runs: int, out_dir: Path) -> list[str]:
         f = np.rad2deg(1) if ax[0] == "r" else 1000.0
         lines.append(f"| {ax} | {p * f:.4f} {unit} | {e * f:.4f} {unit} | {e / p:.2f} |")
     lines += rotation_table(keep[("consistent (default)", 8)])
+    lines += bias_table()
     from covo_gtsam.plots import plot_simulation
 
     for name in ("consistent (default)", "thesis, phi = 1"):
@@ -123,6 +124,34 @@ def simulation_tables(runs: int, out_dir: Path) -> list[str]:
               "![simulation NEES, thesis](consistency/sim_thesis/nees.png)",
               "![errors against bounds](consistency/sim_consistent/errors_bounds.png)", ""]
     return lines
+
+
+def bias_table(runs: int = 1000, draws: int = 16) -> list[str]:
+    """Why the first-order covariance falls short at 8 px: the estimate's bias, and its bootstrap correction."""
+    lines = ["### The estimate's bias", "",
+             f"{runs} runs, seed 0, consistent weighting (95 % region of the ANEES about 3 ± "
+             f"{1.96 * np.sqrt(6 / runs):.2f}). The first-order covariance describes the spread of the estimate; "
+             "at 8 px the estimate is also biased (its mean error lies many standard errors from zero), and the "
+             "NEES counts the bias on top of the spread. A parametric bootstrap "
+             f"(`covo_gtsam.simulation.bootstrap_bias`, {draws} re-estimates per run from noise drawn around the "
+             "fused points) estimates the bias at the estimate and removes it.", "",
+             "| pixel noise | estimate | ANEES t / r | mean error / its standard error, largest of rx ry rz / "
+             "tx ty tz |", "|---|---|---|---|"]
+    for px in (2.0, 8.0):
+        plain = run_simulation(SimulationConfig(runs=runs, seed=0, pixel_sigma=px))
+        rows = [("first order", plain, plain.errors)]
+        if px == 8.0:
+            corrected = run_simulation(SimulationConfig(runs=runs, seed=0, pixel_sigma=px, bias_draws=draws))
+            about_mean = plain.errors - plain.errors.mean(axis=0)
+            rows += [(f"bias-corrected ({draws} draws)", corrected, corrected.errors),
+                     ("first order, errors about their Monte Carlo mean (the bias known)", None, about_mean)]
+        for label, r, e in rows:
+            if r is None:
+                r = simulation_result(plain.config, e, plain.covariances, plain.iterations, plain.dropped_pairs)
+            z = np.abs(e.mean(axis=0) / e.std(axis=0) * np.sqrt(len(e)))
+            lines.append(f"| {px:g} px | {label} | {r.anees_translation:.2f} / {r.anees_rotation:.2f} | "
+                         f"{z[:3].max():.1f} / {z[3:].max():.1f} |")
+    return lines + [""]
 
 
 def rotation_table(r) -> list[str]:
