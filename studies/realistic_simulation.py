@@ -71,6 +71,7 @@ def main() -> None:
             m = q.consecutive & ~q.flagged
             fit = fit_sensor_terms(q.errors[m], q.covariances[m], bases={k: v[m] for k, v in q.bases.items()})
             rec.setdefault("scale" + suffix, []).append(100 * fit.sigmas["depth_scale"])
+            rec.setdefault("dtime" + suffix, []).append(fit.sigmas["depth_time"])
             rec.setdefault("rs" + suffix, []).append(fit.sigmas["rolling_shutter"])
             rec.setdefault("timing" + suffix, []).append(1e3 * fit.sigmas["timing"])
             rec.setdefault("latency" + suffix, []).append(1e3 * fit.sigmas["latency"])
@@ -100,6 +101,8 @@ def main() -> None:
              "|---|---|---|---|",
              f"| depth scale (%) | {100 * c.depth_scale_sigma:g} | {mean_sd(rec['scale'])} | "
              f"{mean_sd(rec['scale0'])} |",
+             f"| colour-depth time factor | 1 (the true offsets, not compensated) | {mean_sd(rec['dtime'])} | "
+             f"{mean_sd(rec['dtime0'])} |",
              f"| rolling-shutter residual factor | about 1 (the model's size) | {mean_sd(rec['rs'])} | "
              f"{mean_sd(rec['rs0'])} |",
              f"| timing (ms) | the clock's residual, {mean_sd(rec['clock_err'])} | {mean_sd(rec['timing'])} | "
