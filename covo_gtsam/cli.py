@@ -134,7 +134,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         cfg = SimulationConfig(
             runs=args.runs, seed=args.seed, weighting=args.weighting, scale=args.scale,
             pixel_sigma=args.pixel_sigma, num_points=args.points,
-            depth_range=(args.min_depth, args.max_depth),
+            depth_range=(args.min_depth, args.max_depth), bias_draws=args.bias_draws,
         )
         if args.workers or args.scheduler:
             from .simulation import run_simulation_parallel
