@@ -202,9 +202,11 @@ def log_likelihood(errors: np.ndarray, covs: np.ndarray) -> float:
 
 
 def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation_factor: bool = True,
-                     bases: Mapping[str, np.ndarray] | None = None, fixed: np.ndarray | None = None) -> SensorTerms:
+                     bases: Mapping[str, np.ndarray] | None = None, fixed: np.ndarray | None = None,
+                     intervals: np.ndarray | int = 1) -> SensorTerms:
     """Maximum-likelihood ``kappa, s_r, s_t`` and the sigma of each frame-level term in ``bases``
-    from consecutive pairs (one interval each); with ``fit_correlation_factor=False`` kappa stays 1.
+    from pairs ``intervals`` frame intervals apart (1: consecutive pairs; or one count per pair); with
+    ``fit_correlation_factor=False`` kappa stays 1.
 
     ``errors`` (N, 6): ``Log(T_est^-1 T_true)`` of each pair
     (:func:`covo_gtsam.metrics.relative_pose_tangent_errors`; right perturbation, ``[omega, v]``);
@@ -246,7 +248,7 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
 
     def cost(x: np.ndarray) -> float:
         kappa, s_r, s_t, sig = params(x)
-        return -log_likelihood(errors, sensor_covariance(point_covs, kappa, s_r, s_t, 1, bases, sig) + fixed)
+        return -log_likelihood(errors, sensor_covariance(point_covs, kappa, s_r, s_t, intervals, bases, sig) + fixed)
 
     # start from moment matching: kappa 1, frame variances = mean squared error per axis, then
     # from larger kappa and smaller frame terms (the likelihood can have more than one maximum);

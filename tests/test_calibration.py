@@ -73,6 +73,25 @@ def test_fit_recovers_the_terms_errors_were_drawn_with():
     assert fit.log_likelihood >= log_likelihood(e, C) - 1e-9
 
 
+def test_fit_of_pairs_spanning_several_intervals_uses_the_growth_laws():
+    """Pairs 1-5 intervals long drawn with the frame term's growth (rotation variance k times,
+    translation k^2 times) give back s_r and s_t when the fit is told each pair's intervals; told
+    they are all consecutive, it overstates both."""
+    rng = np.random.default_rng(5)
+    n = 1200
+    P = _random_spd(rng, n) * 0.002
+    k = rng.integers(1, 6, size=n)
+    s_r, s_t = np.deg2rad(0.1), 0.001
+    C = sensor_covariance(P, 1.0, s_r, s_t, k)
+    e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=(n, 6)))
+    fit = fit_sensor_terms(e, P, False, intervals=k)
+    assert fit.frame_sigma_rot_deg == pytest.approx(0.1, rel=0.1)
+    assert fit.frame_sigma_trans_m == pytest.approx(0.001, rel=0.1)
+    as_consecutive = fit_sensor_terms(e, P, False)
+    assert as_consecutive.frame_sigma_trans_m > 1.5 * fit.frame_sigma_trans_m
+    assert as_consecutive.frame_sigma_rot_deg > 1.2 * fit.frame_sigma_rot_deg
+
+
 def test_fit_rejects_bad_input():
     rng = np.random.default_rng(3)
     P = _random_spd(rng, 5)
