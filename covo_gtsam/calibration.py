@@ -132,8 +132,9 @@ class TwistChanges:
     the change of the twist from one pair to the next (:func:`latency_basis`; each pair's mean
     twist lags its frame by half an interval, which cancels in the change) and ``N`` the part of
     ``b b^T`` the two pairs' estimation noise accounts for (their per-point covariances over
-    ``dt^2``); changes of consecutive one-interval pairs only, and a pair ``k`` intervals long
-    gets ``k^2`` times the basis (odometry); rotation block only (a translation change of the twist is below its noise). The
+    ``dt^2``); changes of consecutive pairs of equal length, per frame interval (a change between
+    pairs ``m`` intervals long counts ``1/m^2``), and a pair ``k`` intervals long gets ``k^2`` times
+    the basis (odometry); rotation block only (a translation change of the twist is below its noise). The
     mean is clipped to positive semidefinite (clipping each term instead would leave most of the
     noise in). Zero until a change has been seen.
     """
@@ -151,15 +152,16 @@ class TwistChanges:
         return (U * np.clip(w, 0.0, None)) @ U.T
 
     def add(self, T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray, noise_ref: np.ndarray,
-            noise_cur: np.ndarray) -> None:
-        """Record the change between two consecutive pairs' mean twists (6,) (rad/s, m/s), one frame
-        interval apart; ``T_ref,cur`` (4x4) is the later pair, ``noise_ref``/``noise_cur`` (6, 6) the
-        covariances of the two twists' estimation noise ((rad/s)^2 and (m/s)^2 blocks: a pair's
-        per-point covariance over its interval squared)."""
+            noise_cur: np.ndarray, intervals: int = 1) -> None:
+        """Record the change between two consecutive pairs' mean twists (6,) (rad/s, m/s), each pair
+        ``intervals`` frame intervals long (so their twists that far apart), per interval;
+        ``T_ref,cur`` (4x4) is the later pair, ``noise_ref``/``noise_cur`` (6, 6) the covariances of
+        the two twists' estimation noise ((rad/s)^2 and (m/s)^2 blocks: a pair's per-point
+        covariance over its interval squared)."""
         import gtsam
 
         Ad = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float)).inverse().AdjointMap()
-        X = latency_basis(T_ref_cur, twist_ref, twist_cur) - (noise_cur + Ad @ noise_ref @ Ad.T)
+        X = (latency_basis(T_ref_cur, twist_ref, twist_cur) - (noise_cur + Ad @ noise_ref @ Ad.T)) / intervals**2
         X[3:, :] = 0.0
         X[:, 3:] = 0.0
         if np.all(np.isfinite(X)):

@@ -112,7 +112,8 @@ def main() -> None:
              "|---|---|---|---|",
              f"| depth scale (%) | {100 * c.depth_scale_sigma:g} | {mean_sd(rec['scale'])} | "
              f"{mean_sd(rec['scale0'])} |",
-             f"| colour-depth time factor | {depth_time_expected(c):.2g} (the true offsets, not compensated; below) | "
+             f"| colour-depth time factor | {depth_time_expected(c):.2g} (the true offsets, uncompensated, in the "
+             "term's independent form; derivation.md) | "
              f"{mean_sd(rec['dtime'])} | "
              f"{mean_sd(rec['dtime0'])} |",
              f"| rolling-shutter residual factor | about 1 (the model's size) | {mean_sd(rec['rs'])} | "

@@ -208,6 +208,11 @@ def test_twist_changes_subtract_the_estimation_noise_and_use_only_past_pairs():
     expected[:3, :3] = np.outer(delta[:3], delta[:3])
     got = basis(N_ref, N_cur)
     np.testing.assert_allclose(got, expected, atol=0.006)  # sampling error about 0.002
+    # the same changes between pairs two intervals long: per interval, a quarter
+    two = TwistChanges(window=n)
+    for x, y in zip(a, b):
+        two.add(T.matrix(), x, y, N_ref, N_cur, intervals=2)
+    np.testing.assert_allclose(two.basis(), got / 4, rtol=1e-9, atol=1e-15)
     assert np.all(got[3:] == 0) and np.all(got[:, 3:] == 0)
     tol = 0.006
     assert np.abs(basis(np.zeros((6, 6)), np.zeros((6, 6))) - expected).max() > 3 * tol  # no subtraction

@@ -212,3 +212,12 @@ def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
     np.testing.assert_allclose(b[6].error_bases["latency"], 4 * a[6].error_bases["latency"], rtol=1e-12)
     np.testing.assert_array_equal(b[7].error_bases["latency"], a[6].error_bases["latency"])
     assert not np.allclose(a[7].error_bases["latency"], a[6].error_bases["latency"])
+    # a camera that delivers every other frame: its pairs are two intervals long, alike, so their
+    # changes enter the history (per interval) and the third pair on has the latency and
+    # rolling-shutter terms
+    c = run([0, 2, 4, 6, 8])
+    assert all(s.status == "tracked" for s in c[1:])
+    assert np.all(c[2].error_bases["latency"] == 0)
+    for s in c[3:]:
+        assert np.abs(s.error_bases["latency"]).max() > 0
+        assert np.abs(s.error_bases["rolling_shutter"]).max() > 0
