@@ -111,10 +111,12 @@ def _png_bytes(path: str, formats: tuple[tuple[int, int], ...]) -> tuple[np.ndar
         return pixels, colour_type
     if not np.all(filters == 1) or height * width * 255 >= 1 << 31:  # int32 sums below
         return None
-    # "Sub": each byte adds the one a pixel to its left; the running sum of each row, mod 256
-    total = _png_scratch("a", (height + 1, width + 1, step), np.int32)
-    total = cv2.integral(np.ascontiguousarray(pixels), sum=total)  # sums over both axes
-    row_sum = np.subtract(total[1:, 1:], total[:-1, 1:], out=_png_scratch("b", pixels.shape, np.int32))
+    # "Sub": each byte adds the one a pixel to its left; the running sum of each row, mod 256. OpenCV
+    # reads the rows where they are (no copy without the filter bytes) and subtracts about three
+    # times as fast as numpy on these strided views (its saturation never acts: the differences are
+    # the rows' running sums, 0 to width * 255)
+    total = cv2.integral(pixels, sum=_png_scratch("a", (height + 1, width + 1, step), np.int32))
+    row_sum = cv2.subtract(total[1:, 1:], total[:-1, 1:], dst=_png_scratch("b", pixels.shape, np.int32))
     return np.bitwise_and(row_sum, 255, out=row_sum), colour_type
 
 
