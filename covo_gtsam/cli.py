@@ -8,6 +8,7 @@ file and the problem; no traceback. ``covo run`` that tracks no frame at all end
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import sys
 import warnings
@@ -279,7 +280,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         parser = build_parser()  # imports GTSAM: Ctrl-C may arrive here
         args = parser.parse_args(argv)
-        return args.func(args)
+        code = args.func(args)
+        if argv is None:  # a program run (the console script, python -m) ends here
+            gc.freeze()  # spares the interpreter's shutdown its collections over every object left
+        return code
     except CovoError as exc:
         print(f"covo: error: {exc}", file=sys.stderr)
         return 2
