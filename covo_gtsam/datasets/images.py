@@ -155,7 +155,7 @@ def _png_grey(path: str) -> np.ndarray | None:
         return None
     pixels, colour_type = found
     if colour_type == 0:
-        return pixels[:, :, 0].astype(np.uint8)
+        return np.ascontiguousarray(_low_bytes(pixels)[:, :, 0])
     if pixels.dtype == np.int32:  # "Sub" rows undone: int32 running sums in slot "b"; "a" is free again
         rgb, out = np.bitwise_and(pixels, 255, out=pixels), "a"
     else:  # unfiltered rows: the file's bytes
