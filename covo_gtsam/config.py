@@ -68,6 +68,9 @@ class NoiseConfig:
     depth_offset_factor: float = number(1.0, "the depth read also varies over the colour-depth offset under motion: "
                                         "this times the stamped offset (0: off)", "factor", "non-negative",
                                         maximum=100.0)
+    exposure_s: float = number(0.0, "colour exposure time: a keypoint smeared along its image velocity over it "
+                               "gets (exposure |u'|)^2 / 12 of variance along it (motion blur; 0: off)", "s",
+                               "non-negative", maximum=1.0)
 
     def __post_init__(self) -> None:
         check_settings(self, self.section)

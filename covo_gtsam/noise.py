@@ -153,6 +153,19 @@ def propagate(J: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return (J @ np.asarray(Q, dtype=float)) @ np.swapaxes(J, -1, -2)
 
 
+def blur_covariances(X: np.ndarray, uv_velocity: np.ndarray, exposure_s: float, fx: float, fy: float) -> np.ndarray:
+    """Covariances (N, 3, 3; m^2) that motion blur adds to points ``X`` (N, 3; camera frame, m): over
+    an exposure of ``exposure_s`` s a keypoint is smeared along its image velocity ``uv_velocity``
+    (N, 2; px/s) over ``L = exposure_s |u'|`` px, and where along the smear the detector places it is
+    taken as uniform: variance ``L^2 / 12`` along ``u'``. Carried to the point at its depth by
+    ``dX/d(u, v) = diag(Z/fx, Z/fy)`` (the depth is read, not smeared)."""
+    X = np.asarray(X, dtype=float)
+    d = exposure_s * np.asarray(uv_velocity, dtype=float) * X[:, 2:3] / np.array([fx, fy])  # m, along x and y
+    Q = np.zeros((len(X), 3, 3))
+    Q[:, :2, :2] = d[:, :, None] * d[:, None, :] / 12.0
+    return Q
+
+
 def surface_angles(
     depth: np.ndarray, uv: np.ndarray, camera: Camera, step: int = 3, max_jump: float = 0.05
 ) -> np.ndarray:

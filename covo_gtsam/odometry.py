@@ -28,7 +28,7 @@ from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
 from .integrity import IntegrityScale, depth_free_check
-from .noise import depth_lookup_variance
+from .noise import blur_covariances, depth_lookup_variance
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
 from .steps import POSED_STATUSES, DeprecatedStepAccess, OdometryStep, StepHistory, StepStatus
 
@@ -310,34 +310,40 @@ class VisualOdometry(DeprecatedStepAccess):
         initial = None if pairs.T_init is None else gtsam.Pose3(pairs.T_init)
         compensate = dt > 0 and (
             self.config.sensor.rolling_shutter_s > 0 or self.config.sensor.depth_time_compensation
-            or (self.config.noise.depth_offset_factor > 0 and (ref.depth_offset or frame.depth_offset)))
+            or (self.config.noise.depth_offset_factor > 0 and (ref.depth_offset or frame.depth_offset))
+            or self.config.noise.exposure_s > 0)
         if compensate and initial is None:
             initial = self._solve(X_ref, X_cur, pairs, None).pose
         if compensate:
             twist_ref, twist_cur = frame_twists(initial, dt, ref_step.velocity)
-            pairs = self._with_offset_noise(pairs, ref, frame, twist_ref, twist_cur)
+            pairs = self._with_motion_noise(pairs, ref, frame, twist_ref, twist_cur)
             X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
             X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
         return self._solve(X_ref, X_cur, pairs, initial), X_ref, X_cur, pairs
 
-    def _with_offset_noise(self, pairs: PointPairs, ref: FrameData, frame: FrameData, twist_ref: np.ndarray,
+    def _with_motion_noise(self, pairs: PointPairs, ref: FrameData, frame: FrameData, twist_ref: np.ndarray,
                            twist_cur: np.ndarray) -> PointPairs:
-        """``pairs`` with each point's covariance grown by what its depth image changes over the
-        frame's colour-depth offset (``noise.depth_offset_factor`` times the stamped one): the depth
-        image saw the scene shifted by the point's image velocity times the offset, so the depth
-        read at the colour keypoint may belong to a neighbouring surface
-        (:func:`~covo_gtsam.noise.depth_lookup_variance`; added along the viewing ray)."""
-        c = self.config.noise.depth_offset_factor
+        """``pairs`` with each point's covariance grown by what the camera's motion does to it: the
+        depth image's change over the frame's colour-depth offset (``noise.depth_offset_factor`` times
+        the stamped one; the depth image saw the scene shifted by the point's image velocity times
+        the offset, so the depth read at the colour keypoint may belong to a neighbouring surface:
+        :func:`~covo_gtsam.noise.depth_lookup_variance`, along the viewing ray) and motion blur over
+        ``noise.exposure_s`` (:func:`~covo_gtsam.noise.blur_covariances`)."""
+        c, exposure = self.config.noise.depth_offset_factor, self.config.noise.exposure_s
         Q = []
         for fd, X, uv, Q_f, twist in ((ref, pairs.X_ref, pairs.uv_ref, pairs.Q_ref, twist_ref),
                                       (frame, pairs.X_cur, pairs.uv_cur, pairs.Q_cur, twist_cur)):
-            if not (c > 0 and fd.depth_offset):
+            if not (exposure > 0 or (c > 0 and fd.depth_offset)):
                 Q.append(Q_f)
                 continue
-            shift = image_velocities(X, twist, self.camera.fx, self.camera.fy) * (c * fd.depth_offset)
-            ray = X / X[:, 2:3]
-            Q.append(Q_f + depth_lookup_variance(fd.depth, uv, shift[None])[:, None, None]
-                     * ray[:, :, None] * ray[:, None, :])
+            velocity = image_velocities(X, twist, self.camera.fx, self.camera.fy)
+            if c > 0 and fd.depth_offset:
+                ray = X / X[:, 2:3]
+                lookup = depth_lookup_variance(fd.depth, uv, (velocity * (c * fd.depth_offset))[None])
+                Q_f = Q_f + lookup[:, None, None] * ray[:, :, None] * ray[:, None, :]
+            if exposure > 0:
+                Q_f = Q_f + blur_covariances(X, velocity, exposure, self.camera.fx, self.camera.fy)
+            Q.append(Q_f)
         return replace(pairs, Q_ref=Q[0], Q_cur=Q[1])
 
     def _implausible(self, T: gtsam.Pose3) -> str:
