@@ -52,9 +52,8 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance", "twist_change", "latency_basis", "TwistChanges",
-           "sensor_covariance",
-           "log_likelihood", "fit_sensor_terms"]
+__all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance",
+           "twist_change", "latency_basis", "TwistChanges", "sensor_covariance", "log_likelihood", "fit_sensor_terms"]
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
@@ -207,8 +206,9 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
                      bases: Mapping[str, np.ndarray] | None = None, fixed: np.ndarray | None = None,
                      intervals: np.ndarray | int = 1) -> SensorTerms:
     """Maximum-likelihood ``kappa, s_r, s_t`` and the sigma of each frame-level term in ``bases``
-    from pairs ``intervals`` frame intervals apart (1: consecutive pairs; or one count per pair); with
-    ``fit_correlation_factor=False`` kappa stays 1.
+    from pairs ``intervals`` frame intervals apart (1: consecutive pairs; or one count per pair; the
+    library's own calibration, :func:`covo_gtsam.pipeline.calibrate_sequence`, fits consecutive pairs);
+    with ``fit_correlation_factor=False`` kappa stays 1.
 
     ``errors`` (N, 6): ``Log(T_est^-1 T_true)`` of each pair
     (:func:`covo_gtsam.metrics.relative_pose_tangent_errors`; right perturbation, ``[omega, v]``);
@@ -225,6 +225,13 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
         raise InputError(f"need at least 10 pairs to fit the sensor terms, got {len(errors)}")
     if not (np.all(np.isfinite(errors)) and np.all(np.isfinite(point_covs))):
         raise InputError("errors and covariances must be finite")
+    try:
+        intervals = np.broadcast_to(np.asarray(intervals, dtype=float), (len(errors),))
+    except ValueError:
+        raise InputError(f"intervals must be one count or one per pair ({len(errors)}), got shape "
+                         f"{np.shape(intervals)}") from None
+    if not np.all(np.isfinite(intervals) & (intervals >= 1)):
+        raise InputError("intervals must be frame interval counts of at least 1")
     bases = {k: np.asarray(v, dtype=float) for k, v in (bases or {}).items()}
     fixed = np.zeros_like(point_covs) if fixed is None else np.asarray(fixed, dtype=float)
     if fixed.shape != point_covs.shape or not np.all(np.isfinite(fixed)):

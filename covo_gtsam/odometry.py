@@ -393,12 +393,13 @@ class VisualOdometry(DeprecatedStepAccess):
     def _add_twist_change(self, last: OdometryStep, step: OdometryStep) -> None:
         """The change of the twist from ``last``'s pair to ``step``'s into the latency term's history:
         only two consecutive pairs of the same number of frame intervals (per interval, so a camera
-        that drops every other frame still has the term), neither flagged by the integrity check. The noise subtracted is each twist's share of the
-        estimator's own covariance, ``C_points / dt^2`` (not scaled by kappa, as in the fit)."""
+        that drops every other frame still has the term), neither flagged by the integrity check.
+        The noise subtracted is each twist's share of the estimator's own covariance,
+        ``C_points / dt^2`` (not scaled by kappa, as in the fit)."""
         key = (step.ref_timestamp, step.timestamp)
         noise_ref, noise_cur = self._twist_noise.get((last.ref_timestamp, last.timestamp)), self._twist_noise.get(key)
         self._twist_noise = {key: noise_cur} if noise_cur is not None else {}
-        if (noise_ref is None or noise_cur is None or noise_ref[1] != noise_cur[1] or noise_cur[1] < 1
+        if (noise_ref is None or noise_cur is None or noise_ref[1] != noise_cur[1]
                 or step.ref_timestamp != last.timestamp or step.flagged or last.flagged
                 or step.velocity is None or last.velocity is None):
             return

@@ -24,7 +24,7 @@ from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
 from covo_gtsam.pipeline import run_sequence  # noqa: E402
-from covo_gtsam.simulation import SimulationConfig, run_simulation, simulation_result  # noqa: E402
+from covo_gtsam.simulation import SimulationConfig, mean_error_z, run_simulation, simulation_result  # noqa: E402
 
 SIM_VARIANTS = {
     "consistent (default)": dict(weighting="consistent", scale=1.0),
@@ -148,7 +148,7 @@ def bias_table(runs: int = 1000, draws: int = 16) -> list[str]:
         for label, r, e in rows:
             if r is None:
                 r = simulation_result(plain.config, e, plain.covariances, plain.iterations, plain.dropped_pairs)
-            z = np.abs(e.mean(axis=0) / e.std(axis=0) * np.sqrt(len(e)))
+            z = np.abs(mean_error_z(e))
             lines.append(f"| {px:g} px | {label} | {r.anees_translation:.2f} / {r.anees_rotation:.2f} | "
                          f"{z[:3].max():.1f} / {z[3:].max():.1f} |")
     return lines + [""]

@@ -180,14 +180,50 @@ def delay_table(data: Path, rpy: dict, desk: dict) -> list[str]:
     return lines + [""]
 
 
+def every_nth(seq: TumSequence, cfg: OdometryConfig, n: int) -> list:
+    """The tracked steps of runs over every ``n``-th frame of ``seq``, one run per phase."""
+    from covo_gtsam.odometry import VisualOdometry
+
+    steps = []
+    for start in range(n):
+        vo = VisualOdometry(seq.camera_name, cfg)
+        for i in range(start, len(seq.timestamps), n):
+            step = vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i])
+            if step.status == "tracked":
+                steps.append(step)
+    return steps
+
+
+def anees_cells(err: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """NEES of the translation and the rotation blocks (tangent ``[omega, v]``)."""
+    return nees(err[:, 3:], covs[:, 3:, 3:]), nees(err[:, :3], covs[:, :3, :3])
+
+
+def stride_table(data: Path) -> list[str]:
+    """The default model on fr1_rpy taken every 2nd and 3rd frame (all phases): pairs over two and
+    three frame intervals, the motion of a faster turn or of a camera that drops frames."""
+    seq = TumSequence(data / "tum" / RPY)
+    lookup = ground_truth_lookup(seq)
+    lines = ["## Larger motion between frames (every 2nd and 3rd frame)", "",
+             "The default model (fitted on consecutive pairs of frames 0-119) on fr1_rpy taken every n-th frame, "
+             "each phase a run of its own: each pair spans n frame intervals, as in a turn n times as fast (the "
+             "readout's and the clock's share do not grow) or a camera that drops frames.", "",
+             "| every n-th frame | pairs | ANEES t / r | NEES > 9.35 t / r | largest NEES t / r |",
+             "|---|---|---|---|---|"]
+    for n in (1, 2, 3):
+        T_est, T_true, covs = relative_ground_truth(every_nth(seq, OdometryConfig(), n), lookup)
+        nt, nr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
+        lines.append(f"| {n} | {len(nt)} | {nt.mean():.2f} / {nr.mean():.2f} | {100 * np.mean(nt > 9.35):.0f} % / "
+                     f"{100 * np.mean(nr > 9.35):.0f} % | {nt.max():.1f} / {nr.max():.1f} |")
+    return lines + [""]
+
+
 def closure_table(data: Path) -> list[str]:
     """Closures of overlapping pairs on fr1_rpy: the pairs (k-1, k) and (k, k+1) of a frame-to-frame run
     against the pair (k-1, k+1) of a run over every other frame, ``d = Log(T_skip^-1 T_a T_b)``; the
     NEES of ``d`` under the chain's and the skip pair's covariances taken as independent, per model,
     beside the same model's ANEES against the ground truth (consecutive pairs)."""
     import gtsam
-
-    from covo_gtsam.odometry import VisualOdometry
 
     seq = TumSequence(data / "tum" / RPY)
     lookup = ground_truth_lookup(seq)
@@ -202,57 +238,21 @@ def closure_table(data: Path) -> list[str]:
              "ANEES t / r |", "|---|---|---|---|"]
     for label, sensor in (("per-point model alone", POINTS_ONLY), ("default", {})):
         cfg = OdometryConfig().replace(sensor=sensor)
-        runs = {}
-        for stride, start in ((1, 0), (2, 0), (2, 1)):
-            vo = VisualOdometry(seq.camera_name, cfg)
-            for i in range(start, len(seq.timestamps), stride):
-                step = vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i])
-                if step.status == "tracked":
-                    runs[(stride, i)] = step
+        consecutive = {s.timestamp: s for s in every_nth(seq, cfg, 1)}  # by the frame each pair ends in
         d, S = [], []
-        for (stride, i), skip in runs.items():
-            a, b = runs.get((1, i - 1)), runs.get((1, i))
-            if stride != 2 or a is None or b is None:
-                continue
+        for skip in every_nth(seq, cfg, 2):
+            b = consecutive.get(skip.timestamp)
+            a = None if b is None else consecutive.get(b.ref_timestamp)
+            if a is None or a.ref_timestamp != skip.ref_timestamp:
+                continue  # a frame lost in either run: no closure over these frames
             chain = compose_covariance(a.relative, a.covariance, b.relative, b.covariance)
             d.append(gtsam.Pose3.Logmap(skip.relative.between(a.relative.compose(b.relative))))
             S.append(chain + skip.covariance)
-        d, S = np.array(d), np.array(S)
-        nt, nr = nees(d[:, 3:], S[:, 3:, 3:]), nees(d[:, :3], S[:, :3, :3])
-        T_est, T_true, covs = relative_ground_truth([s for (k, _), s in runs.items() if k == 1], lookup)
-        xi = relative_pose_tangent_errors(T_est, T_true)
+        nt, nr = anees_cells(np.array(d), np.array(S))
+        T_est, T_true, covs = relative_ground_truth(list(consecutive.values()), lookup)
+        gt, gr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
         lines.append(f"| {label} | {len(d)} | {nt.mean():.2f} / {nr.mean():.2f} ({np.median(nt):.2f} / "
-                     f"{np.median(nr):.2f}) | {nees(xi[:, 3:], covs[:, 3:, 3:]).mean():.2f} / "
-                     f"{nees(xi[:, :3], covs[:, :3, :3]).mean():.2f} |")
-    return lines + [""]
-
-
-def stride_table(data: Path) -> list[str]:
-    """The default model on fr1_rpy taken every 2nd and 3rd frame (all phases): pairs over two and
-    three frame intervals, the motion of a faster turn or of a camera that drops frames."""
-    from covo_gtsam.odometry import VisualOdometry
-
-    seq = TumSequence(data / "tum" / RPY)
-    lookup = ground_truth_lookup(seq)
-    lines = ["## Larger motion between frames (every 2nd and 3rd frame)", "",
-             "The default model (fitted on consecutive pairs of frames 0-119) on fr1_rpy taken every n-th frame, "
-             "each phase a run of its own: each pair spans n frame intervals, as in a turn n times as fast (the "
-             "readout's and the clock's share do not grow) or a camera that drops frames.", "",
-             "| every n-th frame | pairs | ANEES t / r | NEES > 9.35 t / r | largest NEES t / r |",
-             "|---|---|---|---|---|"]
-    for stride in (1, 2, 3):
-        steps = []
-        for start in range(stride):
-            vo = VisualOdometry(seq.camera_name, OdometryConfig())
-            for i in range(start, len(seq.timestamps), stride):
-                step = vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i])
-                if step.status == "tracked":
-                    steps.append(step)
-        T_est, T_true, covs = relative_ground_truth(steps, lookup)
-        xi = relative_pose_tangent_errors(T_est, T_true)
-        nt, nr = nees(xi[:, 3:], covs[:, 3:, 3:]), nees(xi[:, :3], covs[:, :3, :3])
-        lines.append(f"| {stride} | {len(nt)} | {nt.mean():.2f} / {nr.mean():.2f} | {100 * np.mean(nt > 9.35):.0f} % / "
-                     f"{100 * np.mean(nr > 9.35):.0f} % | {nt.max():.1f} / {nr.max():.1f} |")
+                     f"{np.median(nr):.2f}) | {gt.mean():.2f} / {gr.mean():.2f} |")
     return lines + [""]
 
 

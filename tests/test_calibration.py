@@ -87,6 +87,10 @@ def test_fit_of_pairs_spanning_several_intervals_uses_the_growth_laws():
     fit = fit_sensor_terms(e, P, False, intervals=k)
     assert fit.frame_sigma_rot_deg == pytest.approx(0.1, rel=0.1)
     assert fit.frame_sigma_trans_m == pytest.approx(0.001, rel=0.1)
+    with pytest.raises(InputError, match="intervals"):
+        fit_sensor_terms(e, P, False, intervals=k[:-1])
+    with pytest.raises(InputError, match="intervals"):
+        fit_sensor_terms(e, P, False, intervals=np.zeros(n))
     as_consecutive = fit_sensor_terms(e, P, False)
     assert as_consecutive.frame_sigma_trans_m > 1.5 * fit.frame_sigma_trans_m
     assert as_consecutive.frame_sigma_rot_deg > 1.2 * fit.frame_sigma_rot_deg

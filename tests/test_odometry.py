@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from covo_gtsam.camera import Camera
-from covo_gtsam.odometry import VisualOdometry
+from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
 
 def test_run_restarts_after_a_run_of_lost_frames(sample_dir):
@@ -221,3 +221,10 @@ def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
     for s in c[3:]:
         assert np.abs(s.error_bases["latency"]).max() > 0
         assert np.abs(s.error_bases["rolling_shutter"]).max() > 0
+    # per interval: the same run told its frames come every other interval (pairs of one interval)
+    # gives its pairs the same bases (a change over two intervals counts a quarter, a two-interval
+    # pair four times the basis)
+    vo = VisualOdometry(seq.camera, OdometryConfig().replace(sensor={"frame_interval_s": 2 / 30}))
+    d = [vo.register_frame(*frames[i]) for i in (0, 2, 4, 6, 8)]
+    for s, t in zip(c[3:], d[3:]):
+        np.testing.assert_allclose(s.error_bases["latency"], t.error_bases["latency"], rtol=1e-9, atol=1e-15)

@@ -9,7 +9,7 @@ import pytest
 
 from covo_gtsam.errors import ConfigError
 from covo_gtsam.noise import KinectAxialNoise
-from covo_gtsam.simulation import SimulationConfig, run_simulation
+from covo_gtsam.simulation import SimulationConfig, mean_error_z, run_simulation
 
 
 def test_reproducible_by_seed():
@@ -66,12 +66,8 @@ def test_bootstrap_bias_correction_removes_the_estimators_bias_at_8px():
     several axes, which lifts the ANEES above 3); the parametric-bootstrap correction takes the
     mean error back within 3 standard errors on every axis. A correction with the wrong sign
     would double the bias; one that did nothing would leave it."""
-    def z_scores(r):
-        e = r.errors
-        return e.mean(axis=0) / e.std(axis=0) * np.sqrt(len(e))
-
     plain = run_simulation(SimulationConfig(runs=150, pixel_sigma=8.0))
     corrected = run_simulation(SimulationConfig(runs=150, pixel_sigma=8.0, bias_draws=16))
-    assert np.max(np.abs(z_scores(plain))) > 5.0
-    assert np.max(np.abs(z_scores(corrected))) < 3.0
+    assert np.max(np.abs(mean_error_z(plain.errors))) > 5.0
+    assert np.max(np.abs(mean_error_z(corrected.errors))) < 3.0
     assert abs(corrected.anees_rotation - 3.0) < abs(plain.anees_rotation - 3.0)
