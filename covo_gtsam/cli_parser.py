@@ -232,8 +232,8 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
         sub, "calibrate",
         help="fit the sensor terms of the covariance on a sequence with ground truth",
         description="Fit the sensor terms of the reported covariance (correlation_factor, frame_sigma_rot_deg, "
-        "frame_sigma_trans_m and the frame-level terms timing_sigma_s, rolling_shutter_factor, latency_sigma_s; see "
-        "covo_gtsam.calibration) by maximum likelihood on the consecutive frame pairs "
+        "frame_sigma_trans_m and the frame-level terms timing_sigma_s, rolling_shutter_factor, latency_sigma_s, "
+        "depth_scale_sigma, depth_time_factor; see covo_gtsam.calibration) by maximum likelihood on the consecutive frame pairs "
         "of a sequence with ground truth, for a sensor other than the Kinect v1 the defaults belong to. Runs "
         "the odometry with the per-point model alone into OUT/per_point_run, writes OUT/calibration.json and "
         "prints the configuration lines. Needs SciPy.",
