@@ -79,7 +79,7 @@ STAGES = {
     "solve + marginals (1 per pair)": [("odometry.py", "_solve")],
     "time compensation of points, offsets' lookup variance": [("odometry.py", "_to_frame_time"),
                                                               ("rolling_shutter.py", "frame_twists"),
-                                                              ("odometry.py", "_with_offset_noise")],
+                                                              ("odometry.py", "_with_motion_noise")],
     "covariance terms + composition": [("odometry.py", "_error_bases"), ("odometry.py", "sensor_covariance"),
                                        ("covariance.py", "compose_covariance"), ("clock.py", "restamp")],
     "integrity check": [("integrity.py", "depth_free_check"), ("integrity.py", "normalise")],
