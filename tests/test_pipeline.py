@@ -187,6 +187,7 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     """`covo calibrate` fits the sensor terms on the sample's 39 consecutive pairs, writes
     calibration.json and prints configuration lines that a config file accepts."""
     pytest.importorskip("scipy")
+    from covo_gtsam.calibration import DEFAULT_TERMS
     from covo_gtsam.odometry import OdometryConfig
 
     out = tmp_path / "cal"
@@ -203,7 +204,7 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     printed = capsys.readouterr().out.splitlines()
     lines = [ln for ln in printed if ln.split(" = ")[0].isidentifier()]
     # kappa, the two frame sigmas and the default frame-level terms
-    assert len(lines) == 6 and "[sensor]" in printed
+    assert len(lines) == 3 + len(DEFAULT_TERMS) and "[sensor]" in printed
     cfg = OdometryConfig.from_dict({"sensor": {k: float(v) for k, v in (ln.split(" = ") for ln in lines)}})
     assert cfg.sensor.correlation_factor == pytest.approx(s["correlation_factor"], rel=1e-2)
     assert cfg.sensor.latency_sigma_s == pytest.approx(s["latency_sigma_s"], rel=1e-2)
