@@ -104,6 +104,8 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
     # the frame-level depth-time term (its basis grows with the offset) widens the reported one
     timed = run(0.02, 0.0, depth_time=0.324)
     assert timed.covariance[3:, 3:].trace() > 1.02 * off_ignored.covariance[3:, 3:].trace()
+    # ... and vanishes for depth images stamped with their colour images
+    np.testing.assert_allclose(run(0.0, 1.0, depth_time=0.324).covariance, base.covariance, rtol=1e-12, atol=1e-18)
 
 
 def test_gauss_hermite_nodes_integrate_the_normal_moments():
