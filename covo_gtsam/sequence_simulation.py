@@ -143,6 +143,10 @@ def _world_points(rng: np.random.Generator, n: int) -> np.ndarray:
     return d * rng.uniform(1.0, 4.0, size=(len(d), 1))
 
 
+#: fixed-point steps that place a point at the time its rolling-shutter row is read
+ROW_TIME_STEPS = 4
+
+
 def _observe(traj: _Trajectory, Pw: np.ndarray, t_capture: float, readout: float, camera: Camera,
              depth_offset: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """True pixels (N, 2) at each point's row time, depths (N,) at the depth image's row time, and
@@ -152,13 +156,17 @@ def _observe(traj: _Trajectory, Pw: np.ndarray, t_capture: float, readout: float
     front = X[:, 2] > 0.1
     uv = np.full((n, 2), -1.0)
     uv[front] = camera.project(X[front])
-    # one fixed-point step: the capture time of the point's row, then the point seen then
-    t_rows = t_capture + readout * (np.clip(uv[:, 1], 0, camera.height) - camera.height / 2) / camera.height
-    Xr = traj.in_camera(Pw, t_rows)
+    # fixed-point steps: the capture time of the point's row, then the point seen then (each step
+    # shrinks the error by the row speed times the readout over the height: 0.16 at 3000 px/s, so
+    # four steps leave hundredths of a pixel where one left pixels)
+    uv_r = uv
+    for _ in range(ROW_TIME_STEPS):
+        t_rows = t_capture + readout * (np.clip(uv_r[:, 1], 0, camera.height) - camera.height / 2) / camera.height
+        Xr = traj.in_camera(Pw, t_rows)
+        front &= Xr[:, 2] > 0.1
+        uv_r = np.full((n, 2), -1.0)
+        uv_r[front] = camera.project(Xr[front])
     z_d = traj.in_camera(Pw, t_rows + depth_offset)[:, 2]
-    front &= Xr[:, 2] > 0.1
-    uv_r = np.full((n, 2), -1.0)
-    uv_r[front] = camera.project(Xr[front])
     valid = front & camera.in_image(uv_r) & (z_d >= 0.5) & (z_d <= 5.0)
     return uv_r, z_d, valid
 
