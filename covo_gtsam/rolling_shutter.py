@@ -36,8 +36,7 @@ def compensate_points(
     X: np.ndarray, v: np.ndarray, twist: np.ndarray, height: int, readout_s: float
 ) -> np.ndarray:
     """Points (N, 3) moved from the camera frame at their row's capture time into the frame at
-    the image timestamp: ``Exp(δ [ω, v_lin]) X`` (SE(3), exact for a constant twist) with ``δ`` from
-    :func:`row_time_offsets`; to first order ``X + δ (ω × X + v_lin)``.
+    the image timestamp: ``X + δ (ω × X + v_lin)`` with ``δ`` from :func:`row_time_offsets`.
 
     Args:
         X: (N, 3) camera-frame points (metres), back-projected from pixel rows ``v`` (N,).
@@ -47,18 +46,7 @@ def compensate_points(
     X = np.asarray(X, dtype=float)
     twist = np.asarray(twist, dtype=float).reshape(6)
     d = row_time_offsets(v, height, readout_s)[:, None]
-    w, u = twist[:3], twist[3:]
-    speed = float(np.linalg.norm(w))
-    if speed * float(np.max(np.abs(d), initial=0.0)) < 1e-9:  # no turn over the readout: a translation
-        return X + d * (cross(w, X) + u)
-    a = w / speed
-    th = d * speed  # (N, 1) rotation angle of each row
-    s, c = np.sin(th), np.cos(th)
-    aX, au = cross(a, X), np.cross(a, u)
-    # Rodrigues for the rotation; the translation V(θ) δ u with V = I + (1-c)/θ [a]x + (θ-s)/θ [a]x^2
-    rotated = X * c + aX * s + np.outer(X @ a, a) * (1.0 - c)
-    moved = d * u + (1.0 - c) / speed * au + (th - s) / speed * (np.dot(a, u) * a - u)
-    return rotated + moved
+    return X + d * (cross(twist[:3], X) + twist[3:])
 
 
 def frame_twists(T_ref_cur: gtsam.Pose3, dt: float, ref_velocity: np.ndarray | None = None
