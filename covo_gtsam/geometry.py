@@ -29,13 +29,13 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """``np.cross(a, b)`` of 3-vectors along the last axis (shapes that broadcast, e.g. (3,) and
     (N, 3)): the same products and differences, so the same values, without ``np.cross``'s axis
-    handling (about half its time on a frame's points)."""
+    handling (about half its time on a frame's points); into ``out`` when given (e.g. a view)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape)) if out is None else out
     out[..., 0] = a1 * b2 - a2 * b1
     out[..., 1] = a2 * b0 - a0 * b2
     out[..., 2] = a0 * b1 - a1 * b0

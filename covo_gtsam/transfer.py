@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
-from .geometry import rigid_fit, skew
+from .geometry import cross, rigid_fit, skew
 
 WEIGHTINGS = ("consistent", "thesis")
 
@@ -180,7 +180,7 @@ def whitened_system(
     P = np.empty((n, 2, 3))
     np.negative(X_k1, out=P[:, 0])
     np.negative(Y, out=P[:, 1])
-    _cross_rows(M, P, J[..., :3])
+    cross(M, P[..., None, :], out=J[..., :3])  # row i of M [P]x: m_i x P
     return e, J.reshape(-1, 6)
 
 
@@ -197,15 +197,3 @@ def _whitened_error(r_b: np.ndarray, r_f: np.ndarray, W_b: np.ndarray, W_f: np.n
     e[:, :3] = np.einsum("nij,nj->ni", W_b, r_b)
     e[:, 3:] = np.einsum("nij,nj->ni", W_f, r_f)
     return e.reshape(-1)
-
-
-def _cross_rows(W: np.ndarray, P: np.ndarray, out: np.ndarray) -> None:
-    """``out[..., i, :] = W[..., i, :] x P`` for W (..., 3, 3), P (..., 3), into ``out`` (..., 3, 3).
-
-    That is ``W [P]x``: row i of ``W [P]x`` is ``(w_i x P)^T``.
-    """
-    px, py, pz = P[..., None, 0], P[..., None, 1], P[..., None, 2]
-    wx, wy, wz = W[..., 0], W[..., 1], W[..., 2]
-    out[..., 0] = wy * pz - wz * py
-    out[..., 1] = wz * px - wx * pz
-    out[..., 2] = wx * py - wy * px
