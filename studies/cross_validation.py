@@ -78,6 +78,11 @@ def model_covs(fit, p: dict) -> np.ndarray:
                              fit.frame_sigma_trans_m, 1, p["bases"], fit.sigmas) + p["fixed"]
 
 
+def anees_cells(err: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """NEES of the translation and the rotation blocks (tangent ``[omega, v]``)."""
+    return nees(err[:, 3:], covs[:, 3:, 3:]), nees(err[:, :3], covs[:, :3, :3])
+
+
 def chain_anees(p: dict, covs: np.ndarray, w: int = CHAIN) -> tuple[float, float]:
     """ANEES t / r of windows of ``w`` consecutive pairs (covariances composed as independent)."""
     import gtsam
@@ -94,15 +99,15 @@ def chain_anees(p: dict, covs: np.ndarray, w: int = CHAIN) -> tuple[float, float
         est.append(T.matrix()), true.append(Tt), cc.append(C)
     if not est:
         return float("nan"), float("nan")
-    xi, cc = relative_pose_tangent_errors(np.array(est), np.array(true)), np.array(cc)
-    return float(nees(xi[:, 3:], cc[:, 3:, 3:]).mean()), float(nees(xi[:, :3], cc[:, :3, :3]).mean())
+    nt, nr = anees_cells(relative_pose_tangent_errors(np.array(est), np.array(true)), np.array(cc))
+    return float(nt.mean()), float(nr.mean())
 
 
 def check(fit, p: dict) -> str:
     from covo_gtsam.calibration import log_likelihood
 
     covs = model_covs(fit, p)
-    nt, nr = nees(p["err"][:, 3:], covs[:, 3:, 3:]), nees(p["err"][:, :3], covs[:, :3, :3])
+    nt, nr = anees_cells(p["err"], covs)
     ct, cr = chain_anees(p, covs)
     chain = "—" if np.isnan(ct) else f"{ct:.2f} / {cr:.2f}"
     return (f"{nt.mean():.2f} / {nr.mean():.2f} | "
@@ -192,11 +197,6 @@ def every_nth(seq: TumSequence, cfg: OdometryConfig, n: int) -> list:
             if step.status == "tracked":
                 steps.append(step)
     return steps
-
-
-def anees_cells(err: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """NEES of the translation and the rotation blocks (tangent ``[omega, v]``)."""
-    return nees(err[:, 3:], covs[:, 3:, 3:]), nees(err[:, :3], covs[:, :3, :3])
 
 
 def stride_table(data: Path) -> list[str]:
