@@ -185,11 +185,19 @@ def delay_table(data: Path, rpy: dict, desk: dict) -> list[str]:
     return lines + [""]
 
 
+#: runs already made by :func:`every_nth`: (sequence folder, configuration, n) -> steps
+_RUNS: dict = {}
+
+
 def every_nth(seq: TumSequence, cfg: OdometryConfig, n: int) -> list:
-    """The tracked steps of runs over every ``n``-th frame of ``seq``, one run per phase."""
+    """The tracked steps of runs over every ``n``-th frame of ``seq``, one run per phase (each run
+    made once: the tables share the default model's)."""
     from covo_gtsam.odometry import VisualOdometry
 
-    steps = []
+    key = (str(seq.path), cfg, n)
+    if key in _RUNS:
+        return _RUNS[key]
+    steps = _RUNS[key] = []
     for start in range(n):
         vo = VisualOdometry(seq.camera_name, cfg)
         for i in range(start, len(seq.timestamps), n):
