@@ -86,6 +86,13 @@ class SensorTerms:
         out.update({ERROR_TERMS[k]: v for k, v in self.sigmas.items()})
         return out
 
+    def covariances(self, point_covs: np.ndarray, bases: Mapping[str, np.ndarray] | None = None,
+                    intervals: np.ndarray | int = 1) -> np.ndarray:
+        """The covariances (..., 6, 6) this fit reports for pairs with per-point covariances
+        ``point_covs`` and frame-level bases ``bases`` (:func:`sensor_covariance`)."""
+        return sensor_covariance(point_covs, self.correlation_factor, np.deg2rad(self.frame_sigma_rot_deg),
+                                 self.frame_sigma_trans_m, intervals, bases, self.sigmas)
+
 
 def frame_covariance(sigma_rot_rad: float, sigma_trans_m: float, intervals: np.ndarray | int = 1) -> np.ndarray:
     """Frame term(s) (..., 6, 6) of pairs ``intervals`` (...,) frame intervals apart:

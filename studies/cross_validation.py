@@ -27,7 +27,6 @@ from covo_gtsam.calibration import (  # noqa: E402
     ERROR_TERMS,
     PRIOR_TERMS,
     fit_sensor_terms,
-    sensor_covariance,
 )
 from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.covariance import compose_covariance  # noqa: E402
@@ -74,8 +73,7 @@ def subset(p: dict, mask: np.ndarray) -> dict:
 
 
 def model_covs(fit, p: dict) -> np.ndarray:
-    return sensor_covariance(p["cov"], fit.correlation_factor, np.deg2rad(fit.frame_sigma_rot_deg),
-                             fit.frame_sigma_trans_m, 1, p["bases"], fit.sigmas) + p["fixed"]
+    return fit.covariances(p["cov"], p["bases"]) + p["fixed"]
 
 
 def anees_cells(err: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

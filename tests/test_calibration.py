@@ -67,8 +67,7 @@ def test_fit_recovers_the_terms_errors_were_drawn_with():
     assert fit.correlation_factor == pytest.approx(kappa, rel=0.15)
     assert fit.frame_sigma_rot_deg == pytest.approx(0.2, rel=0.1)
     assert fit.frame_sigma_trans_m == pytest.approx(0.002, rel=0.1)
-    assert fit.log_likelihood == pytest.approx(log_likelihood(e, sensor_covariance(
-        P, fit.correlation_factor, np.deg2rad(fit.frame_sigma_rot_deg), fit.frame_sigma_trans_m)))
+    assert fit.log_likelihood == pytest.approx(log_likelihood(e, fit.covariances(P)))
     # the fit is a maximum: the true parameters do not score higher
     assert fit.log_likelihood >= log_likelihood(e, C) - 1e-9
 
