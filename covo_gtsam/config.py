@@ -143,6 +143,8 @@ class SensorConfig:
                                       "fraction", "non-negative", maximum=1.0)
     depth_time_factor: float = number(0.324, "error of the colour-depth time offset, times the stamped offset "
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
+    twist_history: int = integer(10, "recent changes of the camera's twist the latency and rolling-shutter terms "
+                                 "are taken from", 1, 10000, unit="pairs")
     integrity_threshold: float = number(50.0, "flag a pair whose integrity statistic exceeds this (about chi2(6) "
                                         "when typical)", "statistic")
 

@@ -77,7 +77,7 @@ class VisualOdometry(DeprecatedStepAccess):
         self._lost_run = 0  # consecutive lost frames since the last posed one
         self._last_stamp: float | None = None  # of the last registered frame
         self._integrity = IntegrityScale()
-        self._twist_changes = TwistChanges()
+        self._twist_changes = TwistChanges(self.config.sensor.twist_history)
         #: (reference stamp, stamp) of a pair -> (its twist's noise covariance, its frame intervals)
         self._twist_noise: dict[tuple[float, float], tuple[np.ndarray, int]] = {}
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)

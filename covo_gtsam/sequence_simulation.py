@@ -66,7 +66,9 @@ class SequenceSimulationResult:
     """Per tracked pair: errors (N, 6) against the truth between the stamps, reported covariances
     (N, 6, 6), ``flagged`` (N,), ``bad`` (N,: a frame of the pair is a bad frame), ``quality`` (N,);
     the frames' true stamp offsets (K,) and the clock offsets the odometry estimated (K,); the
-    fitted frame period (s); frames lost; each pair's frame-level error bases."""
+    fitted frame period (s); frames lost; each pair's frame-level error bases; each pair's frame
+    indices (N, 2), its true motion between the two *captures* (N, 4, 4) and the part of its error
+    that the stamps' displacement from the captures makes, ``Log(T_capture^-1 T_stamps)`` (N, 6)."""
 
     errors: np.ndarray
     covariances: np.ndarray
@@ -81,6 +83,9 @@ class SequenceSimulationResult:
     #: frame-level error bases of each pair (name -> (N, 6, 6)) and whether the pair has a velocity
     bases: dict = field(default_factory=dict, repr=False)
     consecutive: np.ndarray | None = field(default=None, repr=False)
+    frames: np.ndarray | None = field(default=None, repr=False)
+    capture_truth: np.ndarray | None = field(default=None, repr=False)
+    stamp_errors: np.ndarray | None = field(default=None, repr=False)
 
     def nees(self, good_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """NEES of translation and rotation (3 dof each) of the pairs (without bad ones by default)."""
@@ -212,12 +217,15 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         frame_bad.append(bad[k])
 
     index = {s: k for k, s in enumerate(stamps)}
-    errors, covs, flagged, pair_bad, quality, kept = [], [], [], [], [], []
+    errors, covs, flagged, pair_bad, quality, kept, frames, T_captures, T_stamps = [], [], [], [], [], [], [], [], []
     for st in steps:
         if not st.has_relative_pose:
             continue
         i, j = index[st.ref_timestamp], index[st.timestamp]
         T_true = traj.pose(stamps[i]).between(traj.pose(stamps[j])).matrix()
+        frames.append((i, j))
+        T_captures.append(traj.pose(captures[i]).between(traj.pose(captures[j])).matrix())
+        T_stamps.append(T_true)
         errors.append(relative_pose_tangent_errors(st.relative.matrix()[None], T_true[None])[0])
         covs.append(st.covariance)
         flagged.append(st.flagged)
@@ -229,4 +237,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         flagged=np.array(flagged, bool), bad=np.array(pair_bad, bool), quality=np.array(quality),
         true_stamp_offsets=stamp_offsets, clock_offsets=np.array([s.clock_offset for s in steps]),
         clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.has_pose), config=cfg,
-        bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool))
+        bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool),
+        frames=np.array(frames, int).reshape(-1, 2), capture_truth=np.array(T_captures).reshape(-1, 4, 4),
+        stamp_errors=relative_pose_tangent_errors(np.array(T_captures).reshape(-1, 4, 4),
+                                                  np.array(T_stamps).reshape(-1, 4, 4)))

@@ -96,3 +96,24 @@ def test_fit_recovers_an_injected_stamp_latency():
             fitted[latency] = fit.sigmas["latency"]
         assert fitted[0.01] == pytest.approx(0.01, rel=0.1)
         assert fitted[0.0] < 0.002
+
+
+@pytest.mark.slow
+def test_latency_basis_has_the_size_of_the_delays_error():
+    """Stamps 10 ms late and no other error source but pixel and depth noise: each pair's error
+    splits into the estimate's own (consistent under the per-point covariance) and the delay's part,
+    whose mean square the latency basis times the delay squared matches (the basis's twist change,
+    its per-interval scaling and its noise subtraction together). The basis is checked against the
+    trajectory's own motion, not against the formula that built it."""
+    cfg = SequenceSimulationConfig(frames=200, seed=3, stamp_latency_s=0.01, period_s=1 / 30, **CLEAN)
+    r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0}))
+    m = r.consecutive & ~r.flagged
+    m[:12] = False  # the basis's history filled
+    own = r.errors[m] - r.stamp_errors[m]
+    n_own = np.mean(np.einsum("ni,nij,nj->n", own[:, :3], np.linalg.inv(r.covariances[m][:, :3, :3]), own[:, :3]))
+    delay = r.stamp_errors[m, :3]
+    predicted = np.trace(0.01**2 * r.bases["latency"][m][:, :3, :3], axis1=1, axis2=2)
+    assert np.sqrt(np.mean(np.sum(delay**2, axis=1))) > 3 * np.sqrt(np.mean(np.trace(
+        r.covariances[m][:, :3, :3], axis1=1, axis2=2)))  # the delay's part dominates the rotation error
+    assert 0.8 < np.mean(np.sum(delay**2, axis=1)) / np.mean(predicted) < 1.25
+    assert 2.4 < n_own < 3.7
