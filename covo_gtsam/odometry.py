@@ -380,8 +380,11 @@ class VisualOdometry(DeprecatedStepAccess):
         if twists is not None and (r_ref or r_cur):
             # the pose between the two stamps, as a back end fed with the stamps reads it; the
             # reference frame moves with the twist its own pair moved it with, so consecutive
-            # restamps cancel along the trajectory
-            shift_ref = r_ref * (step.velocity if ref_step.velocity is None else ref_step.velocity)
+            # restamps cancel along the trajectory -- unless the integrity check flagged that pair:
+            # its twist is likely wrong (by metres per second), and the flagged pair's inflated
+            # covariance covers the step this leaves in the trajectory
+            own = ref_step.velocity is None or ref_step.flagged
+            shift_ref = r_ref * (step.velocity if own else ref_step.velocity)
             step.relative, Ad = restamp(res.pose, shift_ref, r_cur * step.velocity)
             step.covariance = Ad @ step.covariance @ Ad.T
             step.error_bases = {k: Ad @ B @ Ad.T for k, B in step.error_bases.items()}

@@ -86,6 +86,8 @@ class SequenceSimulationResult:
     frames: np.ndarray | None = field(default=None, repr=False)
     capture_truth: np.ndarray | None = field(default=None, repr=False)
     stamp_errors: np.ndarray | None = field(default=None, repr=False)
+    #: which frames (K,) are bad frames
+    bad_frames: np.ndarray | None = field(default=None, repr=False)
 
     def nees(self, good_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """NEES of translation and rotation (3 dof each) of the pairs (without bad ones by default)."""
@@ -238,6 +240,6 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         true_stamp_offsets=stamp_offsets, clock_offsets=np.array([s.clock_offset for s in steps]),
         clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.has_pose), config=cfg,
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool),
-        frames=np.array(frames, int).reshape(-1, 2), capture_truth=np.array(T_captures).reshape(-1, 4, 4),
+        frames=np.array(frames, int).reshape(-1, 2), bad_frames=bad, capture_truth=np.array(T_captures).reshape(-1, 4, 4),
         stamp_errors=relative_pose_tangent_errors(np.array(T_captures).reshape(-1, 4, 4),
                                                   np.array(T_stamps).reshape(-1, 4, 4)))
