@@ -111,9 +111,8 @@ def transfer_mahalanobis(
     first-order covariance ``S = Q_ref + R Q_cur R^T`` (:func:`residual_covariances` returns
     ``2 S``); ``inf`` where ``S`` is not positive definite. 3 dof per pair."""
     r = X_ref - (X_cur @ R.T + t)
-    C_b, _ = residual_covariances(Q_ref, Q_cur, "consistent", R)
-    S6 = tuple(0.5 * C_b[:, i, j] for i, j in SYM6)
-    return sym3_mahalanobis(S6, (r[:, 0], r[:, 1], r[:, 2]))
+    S = Q_ref + rotate_covariances(R, Q_cur)
+    return sym3_mahalanobis(tuple(S[:, i, j] for i, j in SYM6), (r[:, 0], r[:, 1], r[:, 2]))
 
 
 def weighted_rigid_fit(
