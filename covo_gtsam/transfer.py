@@ -49,14 +49,18 @@ def transfer_residuals(R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.n
 
 def transfer_jacobians(R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians (N, 3, 6) of ``r_b`` and ``r_f`` w.r.t. the right perturbation ``[omega, v]``."""
-    n = X_k.shape[0]
-    J_b = np.empty((n, 3, 6))
-    J_b[:, :, :3] = R @ skew(X_k1)
-    J_b[:, :, 3:] = -R
-    J_f = np.zeros((n, 3, 6))
+    J_f = np.zeros((X_k.shape[0], 3, 6))
     J_f[:, :, :3] = -skew((X_k - t) @ R)
     J_f[:, :, 3:] = np.eye(3)
-    return J_b, J_f
+    return backward_jacobians(R, X_k1), J_f
+
+
+def backward_jacobians(R: np.ndarray, X_k1: np.ndarray) -> np.ndarray:
+    """The Jacobians (N, 3, 6) of ``r_b`` alone (:func:`transfer_jacobians`), ``[R [X_k1]x, -R]``."""
+    J_b = np.empty((X_k1.shape[0], 3, 6))
+    J_b[:, :, :3] = R @ skew(X_k1)
+    J_b[:, :, 3:] = -R
+    return J_b
 
 
 def residual_covariances(
