@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .geometry import skew
-from .transfer import rotate_covariances, transfer_jacobians
+from .transfer import backward_jacobians, rotate_covariances
 
 
 def transfer_gains(R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray,
@@ -39,7 +39,7 @@ def transfer_gains(R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.nd
     gains of the default estimator; with the thesis weighting or a robust kernel they are those
     of the consistent, unweighted estimate, an approximation.
     """
-    J, _ = transfer_jacobians(R, t, X_ref, X_cur)
+    J = backward_jacobians(R, X_cur)
     JtW = J.transpose(0, 2, 1) @ np.linalg.inv(Q_ref + rotate_covariances(R, Q_cur))
     K = -np.linalg.inv((JtW @ J).sum(axis=0)) @ JtW
     return K, K @ -R

@@ -22,6 +22,7 @@ variables), so :class:`IntegrityScale` takes its scale from the run itself.
 
 from __future__ import annotations
 
+import bisect
 from collections import deque
 from dataclasses import dataclass
 
@@ -152,21 +153,34 @@ class IntegrityScale:
 
     def __init__(self, window: int = 300) -> None:
         self._values: deque[float] = deque(maxlen=window)
+        self._ascending: list[float] = []  # the same values, sorted: the medians without sorting each time
 
     def normalise(self, statistic: float) -> float:
         """The statistic divided by the run's scale (the median taken with this pair included);
         :meth:`add` makes the pair part of the run's scale."""
         if not np.isfinite(statistic):
             return float("inf")
-        scale = float(np.median([*self._values, float(statistic)])) / CHI2_6_MEDIAN
+        values = self._ascending.copy()
+        bisect.insort(values, float(statistic))
+        scale = _median(values) / CHI2_6_MEDIAN
         return statistic / scale if scale > 0 else 0.0
 
     def add(self, statistic: float) -> None:
         """Count a kept pair's raw statistic in the run's scale."""
         if np.isfinite(statistic):
+            if len(self._values) == self._values.maxlen:  # the oldest value leaves the window
+                del self._ascending[bisect.bisect_left(self._ascending, self._values[0])]
             self._values.append(float(statistic))
+            bisect.insort(self._ascending, float(statistic))
 
     @property
     def scale(self) -> float:
         """Current scale (1 before any pair)."""
-        return float(np.median(self._values)) / CHI2_6_MEDIAN if self._values else 1.0
+        return _median(self._ascending) / CHI2_6_MEDIAN if self._ascending else 1.0
+
+
+def _median(ascending: list[float]) -> float:
+    """The median of sorted values as ``np.median`` computes it: the middle value, or the mean
+    ``(a + b) / 2`` of the middle two."""
+    m = len(ascending) // 2
+    return ascending[m] if len(ascending) % 2 else (ascending[m - 1] + ascending[m]) / 2

@@ -49,14 +49,18 @@ def transfer_residuals(R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.n
 
 def transfer_jacobians(R: np.ndarray, t: np.ndarray, X_k: np.ndarray, X_k1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians (N, 3, 6) of ``r_b`` and ``r_f`` w.r.t. the right perturbation ``[omega, v]``."""
-    n = X_k.shape[0]
-    J_b = np.empty((n, 3, 6))
-    J_b[:, :, :3] = R @ skew(X_k1)
-    J_b[:, :, 3:] = -R
-    J_f = np.zeros((n, 3, 6))
+    J_f = np.zeros((X_k.shape[0], 3, 6))
     J_f[:, :, :3] = -skew((X_k - t) @ R)
     J_f[:, :, 3:] = np.eye(3)
-    return J_b, J_f
+    return backward_jacobians(R, X_k1), J_f
+
+
+def backward_jacobians(R: np.ndarray, X_k1: np.ndarray) -> np.ndarray:
+    """The Jacobians (N, 3, 6) of ``r_b`` alone (:func:`transfer_jacobians`), ``[R [X_k1]x, -R]``."""
+    J_b = np.empty((X_k1.shape[0], 3, 6))
+    J_b[:, :, :3] = R @ skew(X_k1)
+    J_b[:, :, 3:] = -R
+    return J_b
 
 
 def residual_covariances(
@@ -111,9 +115,8 @@ def transfer_mahalanobis(
     first-order covariance ``S = Q_ref + R Q_cur R^T`` (:func:`residual_covariances` returns
     ``2 S``); ``inf`` where ``S`` is not positive definite. 3 dof per pair."""
     r = X_ref - (X_cur @ R.T + t)
-    C_b, _ = residual_covariances(Q_ref, Q_cur, "consistent", R)
-    S6 = tuple(0.5 * C_b[:, i, j] for i, j in SYM6)
-    return sym3_mahalanobis(S6, (r[:, 0], r[:, 1], r[:, 2]))
+    S = Q_ref + rotate_covariances(R, Q_cur)
+    return sym3_mahalanobis(tuple(S[:, i, j] for i, j in SYM6), (r[:, 0], r[:, 1], r[:, 2]))
 
 
 def weighted_rigid_fit(

@@ -96,13 +96,13 @@ def _rigid_consistent(
     them): ``(|a_i - a_j| - |b_i - b_j|)^2 < chi2 * var`` with the first-order variance of the
     difference from the point covariances. Removes most outlier samples before scoring."""
     ok = np.ones(samples.shape[0], bool)
+    A, B, QA, QB = X_ref[samples], X_cur[samples], Q_ref[samples], Q_cur[samples]  # each sample's three pairs
     for p, q in ((0, 1), (0, 2), (1, 2)):
-        i, j = samples[:, p], samples[:, q]
-        da, db = X_ref[i] - X_ref[j], X_cur[i] - X_cur[j]
+        da, db = A[:, p] - A[:, q], B[:, p] - B[:, q]
         la, lb = np.linalg.norm(da, axis=1), np.linalg.norm(db, axis=1)
         ua, ub = da / np.maximum(la, 1e-12)[:, None], db / np.maximum(lb, 1e-12)[:, None]
-        var = (np.einsum("ni,nij,nj->n", ua, Q_ref[i] + Q_ref[j], ua)
-               + np.einsum("ni,nij,nj->n", ub, Q_cur[i] + Q_cur[j], ub))
+        var = (np.einsum("ni,nij,nj->n", ua, QA[:, p] + QA[:, q], ua)
+               + np.einsum("ni,nij,nj->n", ub, QB[:, p] + QB[:, q], ub))
         ok &= (la - lb) ** 2 < chi2 * var
     return ok
 
