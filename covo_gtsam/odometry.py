@@ -274,14 +274,14 @@ class VisualOdometry(DeprecatedStepAccess):
         # time between the two captures: the stamps' difference corrected by the frame clock
         dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)
         try:
-            res, X_ref, X_cur, pairs = self._solve_pair(ref, ref_step, frame, pairs, dt)
+            res, X_ref, X_cur, pairs = self._solve_pair(ref, ref_step, frame, pairs, dt, timestamp)
         except (EstimationError, InputError) as exc:  # InputError: e.g. points moved beyond range by compensation
             step.reason = str(exc)
             return step
         step.reason = self._implausible(res.pose)
         if step.reason:
             return step
-        twists = frame_twists(res.pose, dt, ref_step.velocity) if dt > 0 else None
+        twists = self._frame_twists(res.pose, dt, ref_step, timestamp) if dt > 0 else None
         step.velocity = None if twists is None else twists[1]
         if twists is not None:  # the noise of the pair's twist, for the latency term's history
             self._twist_noise[ref_step.timestamp, timestamp] = (res.covariance / dt**2,
@@ -297,7 +297,24 @@ class VisualOdometry(DeprecatedStepAccess):
         self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         return step
 
-    def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs: PointPairs, dt: float
+    def _frame_twists(self, T: gtsam.Pose3, dt: float, ref_step: OdometryStep, timestamp: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's twists at the pair's two frames. Against the last posed frame, as
+        :func:`~covo_gtsam.rolling_shutter.frame_twists`; against an older keyframe, the current
+        frame's from its motion since the last posed frame and the keyframe's own (its pair's), not
+        the mean over the whole pair."""
+        last = self._last.step if self._last is not None else None
+        if last is None or last is ref_step or last.timestamp <= ref_step.timestamp:
+            return frame_twists(T, dt, ref_step.velocity)
+        dt_last = self._capture_interval(last, timestamp)[0]
+        if not dt_last > 0:
+            return frame_twists(T, dt, ref_step.velocity)
+        twist_cur = gtsam.Pose3.Logmap(ref_step.pose.between(last.pose).inverse().compose(T)) / dt_last
+        twist_ref = twist_cur if ref_step.velocity is None else np.asarray(ref_step.velocity, dtype=float)
+        return twist_ref, twist_cur
+
+    def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs: PointPairs, dt: float,
+                    timestamp: float
                     ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray, PointPairs]:
         """``(result, X_ref, X_cur, pairs)``: the pair's relative pose. With motion (``dt > 0``) the
         points are moved to their frames' timestamps (rolling shutter, depth time) and get the
@@ -315,7 +332,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if compensate and initial is None:
             initial = self._solve(X_ref, X_cur, pairs, None).pose
         if compensate:
-            twist_ref, twist_cur = frame_twists(initial, dt, ref_step.velocity)
+            twist_ref, twist_cur = self._frame_twists(initial, dt, ref_step, timestamp)
             pairs = self._with_motion_noise(pairs, ref, frame, twist_ref, twist_cur)
             X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
             X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)

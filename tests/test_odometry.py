@@ -4,6 +4,7 @@ the library API, the configuration's checks, the frame-level covariance term."""
 from __future__ import annotations
 
 import cv2
+import gtsam
 import numpy as np
 import pytest
 
@@ -228,3 +229,28 @@ def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
     d = [vo.register_frame(*frames[i]) for i in (0, 2, 4, 6, 8)]
     for s, t in zip(c[3:], d[3:]):
         np.testing.assert_allclose(s.error_bases["latency"], t.error_bases["latency"], rtol=1e-9, atol=1e-15)
+
+
+def test_keyframe_pairs_take_the_current_twist_from_the_last_posed_frame(sample_dir):
+    """Against an older keyframe, a frame's twist (used for its rolling-shutter compensation, its
+    error bases and its ``velocity``) is its motion since the last posed frame over that interval,
+    not the mean over the whole pair: with the frame clock off, ``velocity`` equals
+    ``Log(T_last,cur) / dt`` from the steps' own poses, and differs from the pair's mean twist."""
+    from covo_gtsam.datasets.tum import TumSequence
+
+    seq = TumSequence(sample_dir)
+    vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(tracking={"keyframes": True},
+                                                                  sensor={"frame_clock": False}))
+    last, checked, differ = None, 0, 0
+    for i in range(len(seq.timestamps)):
+        step = vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i])
+        if step.status == "tracked" and last is not None and step.ref_timestamp < last.timestamp:
+            dt = step.timestamp - last.timestamp
+            expected = gtsam.Pose3.Logmap(last.pose.between(step.pose)) / dt
+            np.testing.assert_allclose(step.velocity, expected, rtol=1e-6, atol=1e-9)
+            mean = gtsam.Pose3.Logmap(step.relative) / (step.timestamp - step.ref_timestamp)
+            checked += 1
+            differ += np.linalg.norm(mean[:3] - step.velocity[:3]) > 0.01
+        if step.has_pose:
+            last = step
+    assert checked >= 10 and differ >= checked // 2
