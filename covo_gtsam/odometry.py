@@ -394,15 +394,17 @@ class VisualOdometry(DeprecatedStepAccess):
         """``step``'s relative pose moved from the captures to the stamps (by the clock offsets
         ``r_ref``, ``r_cur``), and its pose composed onto the reference's."""
         step.relative = res.pose
+        if twists is not None:
+            # a flagged pair's twist is likely wrong (by metres per second): its frame moves to its
+            # stamp with its reference's twist instead
+            trusted = ref_step.stamp_twist if ref_step.stamp_twist is not None else ref_step.velocity
+            step.stamp_twist = trusted if step.flagged and trusted is not None else step.velocity
         if twists is not None and (r_ref or r_cur):
             # the pose between the two stamps, as a back end fed with the stamps reads it; the
-            # reference frame moves with the twist its own pair moved it with, so consecutive
-            # restamps cancel along the trajectory -- unless the integrity check flagged that pair:
-            # its twist is likely wrong (by metres per second), and the flagged pair's inflated
-            # covariance covers the step this leaves in the trajectory
-            own = ref_step.velocity is None or ref_step.flagged
-            shift_ref = r_ref * (step.velocity if own else ref_step.velocity)
-            step.relative, Ad = restamp(res.pose, shift_ref, r_cur * step.velocity)
+            # reference frame moves with the twist it was moved with as its own pair's end, so
+            # consecutive restamps cancel along the trajectory
+            shift_ref = r_ref * (step.velocity if ref_step.stamp_twist is None else ref_step.stamp_twist)
+            step.relative, Ad = restamp(res.pose, shift_ref, r_cur * step.stamp_twist)
             step.covariance = Ad @ step.covariance @ Ad.T
             step.error_bases = {k: Ad @ B @ Ad.T for k, B in step.error_bases.items()}
         step.result = res

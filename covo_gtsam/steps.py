@@ -68,6 +68,9 @@ class OdometryStep:
     num_matches: int = 0
     num_pairs: int = 0
     velocity: np.ndarray | None = None
+    #: the twist this frame was moved from its capture to its stamp with (None: not moved): the
+    #: pair's own ``velocity``, or for a flagged pair its reference's (its own is likely wrong)
+    stamp_twist: np.ndarray | None = field(default=None, repr=False)
     quality: float | None = None
     flagged: bool = False
     integrity_statistic: float | None = None

@@ -274,8 +274,9 @@ def motion_table(data: Path) -> list[str]:
                     f"{nt[m].mean():.2f} / {nr[m].mean():.2f} ({m.sum()})" if m.any() else "—")
     lines = ["## By the motion: angular speed and colour-depth offset", "",
              "The default model's ANEES t / r (pairs) on fr1_rpy taken every n-th frame (as above), by the pair's "
-             "angular speed times the larger of its two frames' stamped colour-depth offsets, and by the angular "
-             "speed alone.", "", "| binned by | bin | every frame | every 2nd | every 3rd |", "|---|---|---|---|---|"]
+             "estimated angular speed (its rotation over its interval) times the larger of its two frames' stamped "
+             "colour-depth offsets, and by the angular speed alone.", "",
+             "| binned by | bin | every frame | every 2nd | every 3rd |", "|---|---|---|---|---|"]
     lines += [f"| {label} | {b} | {' | '.join(v)} |" for (label, b), v in cells.items()]
     return lines + [""]
 

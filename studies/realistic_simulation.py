@@ -68,7 +68,7 @@ def delay_parts(seed: int, frames: int, speed: float) -> dict:
     q = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0}))
     L, dt = cfg.stamp_latency_s, cfg.period_s
     twists = se3_log(q.capture_truth) / dt  # each pair's mean twist, true
-    history, lagged, centred = TwistChanges(), [], []
+    history, lagged, centred = TwistChanges(TRUTH.sensor.twist_history), [], []
     for n, i in enumerate(q.frames[:, 0]):
         follows = n > 0 and q.frames[n - 1, 1] == i
         lagged.append(history.basis())
@@ -78,7 +78,7 @@ def delay_parts(seed: int, frames: int, speed: float) -> dict:
         else:
             history.clear()
     m = q.consecutive & ~q.flagged
-    m[:12] = False  # the history's window filled
+    m[:TRUTH.sensor.twist_history + 2] = False  # the history's window filled
     est = q.errors[m] - q.stamp_errors[m]  # first order: the estimate's own error
     C = q.covariances[m][:, :3, :3]
     d = q.stamp_errors[m, :3]

@@ -108,7 +108,7 @@ def test_latency_basis_has_the_size_of_the_delays_error():
     cfg = SequenceSimulationConfig(frames=200, seed=3, stamp_latency_s=0.01, period_s=1 / 30, **CLEAN)
     r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0}))
     m = r.consecutive & ~r.flagged
-    m[:12] = False  # the basis's history filled
+    m[:TRUTH.sensor.twist_history + 2] = False  # the basis's history filled
     own = r.errors[m] - r.stamp_errors[m]
     n_own = np.mean(np.einsum("ni,nij,nj->n", own[:, :3], np.linalg.inv(r.covariances[m][:, :3, :3]), own[:, :3]))
     delay = r.stamp_errors[m, :3]
