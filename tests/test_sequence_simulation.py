@@ -68,7 +68,8 @@ def test_integrity_check_catches_bad_frames_at_few_false_alarms():
 def test_fit_recovers_the_injected_depth_scale_error():
     """Each frame's depths scaled by 1 + e, e ~ N(0, 0.05 %^2): the maximum-likelihood fit of the
     frame-level terms against the known truth gives back 0.05 % (three seeds, each within 20 %),
-    the rolling-shutter residual's factor is about 1 (its model's size), and the colour-depth time
+    the rolling-shutter residual's factor is about 1 (its model's size; a basis twice as large
+    gives 0.48), and the colour-depth time
     factor what the simulated offsets (uniform 0-15 ms, the true ones, uncompensated) give the
     term's form, whose two frames' errors are independent: sqrt(var / E[d^2]) = 0.5 (within 25 %)."""
     for seed in range(3):
@@ -117,20 +118,6 @@ def test_latency_basis_has_the_size_of_the_delays_error():
         r.covariances[m][:, :3, :3], axis1=1, axis2=2)))  # the delay's part dominates the rotation error
     assert 0.8 < np.mean(np.sum(delay**2, axis=1)) / np.mean(predicted) < 1.25
     assert 2.4 < n_own < 3.7
-
-
-@pytest.mark.slow
-def test_fit_recovers_the_rolling_shutter_residual_at_its_modelled_size():
-    """A 25 ms readout, compensated with the twist of the pair (the odometry's model): what is left
-    is the twist's error at the current frame, which the term models as half the twist's change
-    over the pair. Fitted against the truth with every other term, its factor comes out at about
-    1 (two seeds, each within 25 %); a basis off by a factor of two would not."""
-    for seed in range(2):
-        r = simulate_sequence(SequenceSimulationConfig(frames=300, seed=seed, depth_scale_sigma=0.0005,
-                                                       bad_frame_rate=0.0), TRUTH)
-        m = r.consecutive & ~r.flagged
-        fit = fit_sensor_terms(r.errors[m], r.covariances[m], bases={k: v[m] for k, v in r.bases.items()})
-        assert fit.sigmas["rolling_shutter"] == pytest.approx(1.0, rel=0.25)
 
 
 @pytest.mark.slow
