@@ -69,9 +69,9 @@ def test_fit_recovers_the_injected_depth_scale_error():
     """Each frame's depths scaled by 1 + e, e ~ N(0, 0.05 %^2): the maximum-likelihood fit of the
     frame-level terms against the known truth gives back 0.05 % (three seeds, each within 20 %),
     the rolling-shutter residual's factor is about 1 (its model's size; a basis twice as large
-    gives 0.48), and the colour-depth time
-    factor what the simulated offsets (uniform 0-15 ms, the true ones, uncompensated) give the
-    term's form, whose two frames' errors are independent: sqrt(var / E[d^2]) = 0.5 (within 25 %)."""
+    gives 0.48), and the colour-depth time factor what the simulated offsets (uniform 0-15 ms, the
+    true ones, uncompensated) give the term's form, whose two frames' errors are independent:
+    sqrt(var / E[d^2]) = 0.5 (within 25 %)."""
     for seed in range(3):
         r = simulate_sequence(SequenceSimulationConfig(frames=300, seed=seed, depth_scale_sigma=0.0005,
                                                        bad_frame_rate=0.0), TRUTH)
