@@ -9,6 +9,7 @@ order. Settings: :mod:`covo_gtsam.config`; what each frame gets: :mod:`covo_gtsa
 from __future__ import annotations
 
 import threading
+from typing import NamedTuple
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -53,6 +54,16 @@ class _PosedFrame:
     min_pairs: int = 0  # keyframe: fewest pairs before the last posed frame replaces it (0: not set yet)
 
 
+class _TwistSpan(NamedTuple):
+    """A frame's twist was taken over the motion ``motion`` (T_start,frame) from the frame stamped
+    ``start``, ``intervals`` frame intervals long; ``noise``: the twist's estimation noise (6x6)."""
+
+    start: float
+    motion: gtsam.Pose3
+    noise: np.ndarray
+    intervals: int
+
+
 class VisualOdometry(DeprecatedStepAccess):
     """Keyframe-based (or frame-to-frame) RGB-D odometry with per-step covariance.
 
@@ -78,8 +89,8 @@ class VisualOdometry(DeprecatedStepAccess):
         self._last_stamp: float | None = None  # of the last registered frame
         self._integrity = IntegrityScale()
         self._twist_changes = TwistChanges(self.config.sensor.twist_history)
-        #: (reference stamp, stamp) of a pair -> (its twist's noise covariance, its frame intervals)
-        self._twist_noise: dict[tuple[float, float], tuple[np.ndarray, int]] = {}
+        #: stamp of a frame -> the span its twist was taken over (for the latency term's history)
+        self._twist_noise: dict[float, _TwistSpan] = {}
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
         self._clock_offset: float | None = None  # offset of the frame being registered from the frame clock
         self._placed_offsets: list[float] = []  # clock offsets of the frames the clock placed
@@ -283,9 +294,8 @@ class VisualOdometry(DeprecatedStepAccess):
             return step
         twists = self._frame_twists(res.pose, dt, ref_step, timestamp) if dt > 0 else None
         step.velocity = None if twists is None else twists[1]
-        if twists is not None:  # the noise of the pair's twist, for the latency term's history
-            self._twist_noise[ref_step.timestamp, timestamp] = (res.covariance / dt**2,
-                                                                 self.config.sensor.frame_intervals(dt))
+        if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
+            self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp)
         step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
@@ -296,6 +306,23 @@ class VisualOdometry(DeprecatedStepAccess):
         self._integrity_check(step, res.pose, X_ref, X_cur, pairs)
         self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         return step
+
+    def _twist_span(self, res: RelativePoseResult, ref_step: OdometryStep, dt: float, timestamp: float
+                    ) -> _TwistSpan:
+        """What the frame's twist (:meth:`_frame_twists`) was taken over: the pair itself, or against
+        an older keyframe the motion since the last posed frame, whose noise is that of the two
+        pairs to the keyframe it is taken from (as independent; C_points / dt^2 each)."""
+        last = self._last.step if self._last is not None else None
+        if last is None or last is ref_step or last.timestamp <= ref_step.timestamp:
+            return _TwistSpan(ref_step.timestamp, res.pose, res.covariance / dt**2,
+                              self.config.sensor.frame_intervals(dt))
+        dt_last = self._capture_interval(last, timestamp)[0]
+        T = ref_step.pose.between(last.pose).inverse().compose(res.pose)
+        same_keyframe = last.ref_timestamp == ref_step.timestamp and last.result is not None
+        C_last = last.result.covariance if same_keyframe else res.covariance
+        Ad = T.inverse().AdjointMap()
+        return _TwistSpan(last.timestamp, T, (res.covariance + Ad @ C_last @ Ad.T) / dt_last**2,
+                          self.config.sensor.frame_intervals(dt_last))
 
     def _frame_twists(self, T: gtsam.Pose3, dt: float, ref_step: OdometryStep, timestamp: float
                       ) -> tuple[np.ndarray, np.ndarray]:
@@ -418,15 +445,14 @@ class VisualOdometry(DeprecatedStepAccess):
         that drops every other frame still has the term), neither flagged by the integrity check.
         The noise subtracted is each twist's share of the estimator's own covariance,
         ``C_points / dt^2`` (not scaled by kappa, as in the fit)."""
-        key = (step.ref_timestamp, step.timestamp)
-        noise_ref, noise_cur = self._twist_noise.get((last.ref_timestamp, last.timestamp)), self._twist_noise.get(key)
-        self._twist_noise = {key: noise_cur} if noise_cur is not None else {}
-        if (noise_ref is None or noise_cur is None or noise_ref[1] != noise_cur[1]
-                or step.ref_timestamp != last.timestamp or step.flagged or last.flagged
+        prev, cur = self._twist_noise.get(last.timestamp), self._twist_noise.get(step.timestamp)
+        self._twist_noise = {step.timestamp: cur} if cur is not None else {}
+        if (prev is None or cur is None or prev.intervals != cur.intervals
+                or cur.start != last.timestamp or step.flagged or last.flagged
                 or step.velocity is None or last.velocity is None):
             return
-        self._twist_changes.add(step.result.pose.matrix(), last.velocity, step.velocity, noise_ref[0], noise_cur[0],
-                                noise_cur[1])
+        self._twist_changes.add(cur.motion.matrix(), last.velocity, step.velocity, prev.noise, cur.noise,
+                                cur.intervals)
 
     def _capture_interval(self, ref_step: OdometryStep, timestamp: float) -> tuple[float, float, float]:
         """``(dt, r_ref, r_cur)``: the time between the two frames' captures (s) and the clock offsets

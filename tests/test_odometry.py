@@ -254,3 +254,22 @@ def test_keyframe_pairs_take_the_current_twist_from_the_last_posed_frame(sample_
         if step.has_pose:
             last = step
     assert checked >= 10 and differ >= checked // 2
+
+
+def test_keyframe_pairs_feed_and_get_the_latency_term(sample_dir):
+    """In keyframe mode a frame's twist is its motion since the last posed frame, so the changes
+    between consecutive frames' twists feed the latency term's history as frame-to-frame pairs do:
+    from frame 10 on every pair against an older keyframe has a latency basis (none did when only
+    pairs whose reference was the last frame fed it)."""
+    from covo_gtsam.datasets.tum import TumSequence
+
+    seq = TumSequence(sample_dir)
+    vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(tracking={"keyframes": True}))
+    last, with_basis = None, []
+    for i in range(len(seq.timestamps)):
+        step = vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i])
+        if step.status == "tracked" and last is not None and step.ref_timestamp < last.timestamp and i >= 10:
+            with_basis.append(bool(np.any(step.error_bases["latency"])))
+        if step.has_pose:
+            last = step
+    assert len(with_basis) >= 10 and all(with_basis)
