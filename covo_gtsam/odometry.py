@@ -9,8 +9,8 @@ order. Settings: :mod:`covo_gtsam.config`; what each frame gets: :mod:`covo_gtsa
 from __future__ import annotations
 
 import threading
-from typing import NamedTuple
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import gtsam
 import numpy as np
@@ -307,17 +307,29 @@ class VisualOdometry(DeprecatedStepAccess):
         self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         return step
 
+    def _since_last(self, T: gtsam.Pose3, ref_step: OdometryStep, timestamp: float
+                    ) -> tuple[OdometryStep, gtsam.Pose3, float] | None:
+        """Against an older keyframe: the last posed frame's step, the motion ``T_last,cur`` since it
+        (``T`` is ``T_ref,cur``) and the capture interval (s); None against the last posed frame (or
+        without an interval since it)."""
+        last = self._last.step if self._last is not None else None
+        if last is None or last is ref_step or last.timestamp <= ref_step.timestamp:
+            return None
+        dt_last = self._capture_interval(last, timestamp)[0]
+        if not dt_last > 0:
+            return None
+        return last, ref_step.pose.between(last.pose).inverse().compose(T), dt_last
+
     def _twist_span(self, res: RelativePoseResult, ref_step: OdometryStep, dt: float, timestamp: float
                     ) -> _TwistSpan:
         """What the frame's twist (:meth:`_frame_twists`) was taken over: the pair itself, or against
         an older keyframe the motion since the last posed frame, whose noise is that of the two
         pairs to the keyframe it is taken from (as independent; C_points / dt^2 each)."""
-        last = self._last.step if self._last is not None else None
-        if last is None or last is ref_step or last.timestamp <= ref_step.timestamp:
+        since = self._since_last(res.pose, ref_step, timestamp)
+        if since is None:
             return _TwistSpan(ref_step.timestamp, res.pose, res.covariance / dt**2,
                               self.config.sensor.frame_intervals(dt))
-        dt_last = self._capture_interval(last, timestamp)[0]
-        T = ref_step.pose.between(last.pose).inverse().compose(res.pose)
+        last, T, dt_last = since
         same_keyframe = last.ref_timestamp == ref_step.timestamp and last.result is not None
         C_last = last.result.covariance if same_keyframe else res.covariance
         Ad = T.inverse().AdjointMap()
@@ -330,13 +342,11 @@ class VisualOdometry(DeprecatedStepAccess):
         :func:`~covo_gtsam.rolling_shutter.frame_twists`; against an older keyframe, the current
         frame's from its motion since the last posed frame and the keyframe's own (its pair's), not
         the mean over the whole pair."""
-        last = self._last.step if self._last is not None else None
-        if last is None or last is ref_step or last.timestamp <= ref_step.timestamp:
+        since = self._since_last(T, ref_step, timestamp)
+        if since is None:
             return frame_twists(T, dt, ref_step.velocity)
-        dt_last = self._capture_interval(last, timestamp)[0]
-        if not dt_last > 0:
-            return frame_twists(T, dt, ref_step.velocity)
-        twist_cur = gtsam.Pose3.Logmap(ref_step.pose.between(last.pose).inverse().compose(T)) / dt_last
+        _, T_last_cur, dt_last = since
+        twist_cur = gtsam.Pose3.Logmap(T_last_cur) / dt_last
         twist_ref = twist_cur if ref_step.velocity is None else np.asarray(ref_step.velocity, dtype=float)
         return twist_ref, twist_cur
 

@@ -234,12 +234,12 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         pair_bad.append(bool(bad[i] or bad[j]))
         quality.append(np.nan if st.quality is None else st.quality)
         kept.append(st)
+    T_captures = np.array(T_captures).reshape(-1, 4, 4)
     return SequenceSimulationResult(
         errors=np.array(errors).reshape(-1, 6), covariances=np.array(covs).reshape(-1, 6, 6),
         flagged=np.array(flagged, bool), bad=np.array(pair_bad, bool), quality=np.array(quality),
         true_stamp_offsets=stamp_offsets, clock_offsets=np.array([s.clock_offset for s in steps]),
         clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.has_pose), config=cfg,
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool),
-        frames=np.array(frames, int).reshape(-1, 2), bad_frames=bad, capture_truth=np.array(T_captures).reshape(-1, 4, 4),
-        stamp_errors=relative_pose_tangent_errors(np.array(T_captures).reshape(-1, 4, 4),
-                                                  np.array(T_stamps).reshape(-1, 4, 4)))
+        frames=np.array(frames, int).reshape(-1, 2), bad_frames=bad, capture_truth=T_captures,
+        stamp_errors=relative_pose_tangent_errors(T_captures, np.array(T_stamps).reshape(-1, 4, 4)))
