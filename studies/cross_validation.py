@@ -32,7 +32,7 @@ from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.covariance import compose_covariance  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
-from covo_gtsam.metrics import nees, relative_pose_tangent_errors  # noqa: E402
+from covo_gtsam.metrics import nees, relative_pose_tangent_errors, se3_log  # noqa: E402
 from covo_gtsam.pipeline import calibration_pairs, prior_covariances, run_sequence, stacked_bases  # noqa: E402
 
 RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
@@ -263,7 +263,8 @@ def motion_table(data: Path) -> list[str]:
         steps = [s for s in every_nth(seq, OdometryConfig(), n) if s.ref_timestamp in lookup and s.timestamp in lookup]
         T_est, T_true, covs = relative_ground_truth(steps, lookup)
         nt, nr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
-        w = np.array([np.linalg.norm(gtsam_log(s.relative)[:3]) / (s.timestamp - s.ref_timestamp) for s in steps])
+        w = (np.linalg.norm(se3_log(T_est)[:, :3], axis=1)
+             / np.array([s.timestamp - s.ref_timestamp for s in steps]))
         d = np.array([max(offset[s.ref_timestamp], offset[s.timestamp]) for s in steps])
         for label, x, edges in (("angular speed x colour-depth offset (rad)", w * d, (0.0, 0.005, 0.01, np.inf)),
                                 ("angular speed (rad/s)", w, (0.0, 0.5, 1.5, np.inf))):
@@ -279,12 +280,6 @@ def motion_table(data: Path) -> list[str]:
              "| binned by | bin | every frame | every 2nd | every 3rd |", "|---|---|---|---|---|"]
     lines += [f"| {label} | {b} | {' | '.join(v)} |" for (label, b), v in cells.items()]
     return lines + [""]
-
-
-def gtsam_log(pose) -> np.ndarray:
-    import gtsam
-
-    return gtsam.Pose3.Logmap(pose)
 
 
 def closure_table(data: Path) -> list[str]:

@@ -196,10 +196,11 @@ def main() -> None:
              "into the estimate's own (against the motion between the two captures) and the part the delay makes "
              "(`SequenceSimulationResult.stamp_errors`); rotation NEES of each, the delay's part under "
              "`L^2 B + C_points` with the true delay `L` and three bases `B`. Mean ± s.d. over "
-             f"{len(lag_seeds)} seeds, pairs after the first 12.", "",
+             f"{len(lag_seeds)} seeds, pairs after the first {TRUTH.sensor.twist_history + 2}.", "",
              "| angular speed up to (rad/s) | delay part's mean square / the run's basis's | estimate's own, "
-             "under C_points | delay part, the run's basis (estimated twists, last 10 changes up to the pair "
-             "before) | same from the true twists | true change centred half an interval before the pair |",
+             f"under C_points | delay part, the run's basis (estimated twists, last {TRUTH.sensor.twist_history} "
+             "changes up to the pair before) | same from the true twists | true change centred half an interval "
+             "before the pair |",
              "|---|---|---|---|---|---|",
              *[f"| {speed:g} | {mean_sd([r['ratio'] for r in rows])} | {mean_sd([r['est'] for r in rows])} | "
                f"{mean_sd([r['own'] for r in rows])} | {mean_sd([r['true_lagged'] for r in rows])} | "
