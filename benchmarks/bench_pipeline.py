@@ -7,24 +7,28 @@
    matching is guided by the previous pair's motion, as the odometry's prediction guides it).
 2. ``register_frame`` alone on frames prepared beforehand, one thread (wall and CPU ms per frame).
 3. CPU of a whole run in this process (:func:`covo_gtsam.pipeline.run_sequence`, progress bar and
-   output files included, no figures): CPU seconds per frame of the process, of the main thread
-   and of the prefetch workers (``time.thread_time``); the rest is threads Python does not see
-   (OpenCV's and BLAS's own) and thread start-up. Then the same run with every frame prepared on
-   the main thread when it is needed (:class:`SerialPool`): same work, no overlap, so it varies
-   less with what else the machine runs.
+   output files included, no figures), with the frames prepared on worker processes (as `covo
+   run`; their CPU counted from ``RUSAGE_CHILDREN``), on worker threads (``time.thread_time``
+   inside each frame's preparation), and on the main thread when needed (same work, no overlap,
+   so it varies less with what else the machine runs): CPU per frame of the frame pairs and
+   output, of the frames' preparation, and the rest (hand-offs, start of the workers).
 4. Where that CPU goes: the same run under ``cProfile`` with a CPU clock per thread
    (``time.thread_time``), main thread and workers merged, summed by stage (each stage the
    inclusive time of the functions named in :data:`STAGES`; "other" is the rest: Python glue,
-   thread hand-offs, step bookkeeping). Profiling slows Python code down, so the shares matter,
+   thread hand-offs, step bookkeeping), frames prepared on worker threads. Profiling slows Python code down, so the shares matter,
    not the absolute figures.
 5. Whole process: `covo run --no-plots --quiet` as a child process (start-up, decoding and the
-   prefetch threads included): wall frames/s, CPU (user + sys) per frame, and peak RSS for 60
+   worker processes included): wall frames/s, CPU (user + sys) per frame, and peak RSS for 60
    frames and for the whole sequence to show that memory stays flat.
 6. "Decoded in advance": the odometry as `covo run` runs it (features of the next frames prepared
-   on worker threads) on images decoded beforehand.
+   on worker processes) on images decoded beforehand.
 """
 
 from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `covo run`: no BLAS threads, so runs fork their workers
 
 import contextlib
 import cProfile
@@ -36,8 +40,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections import defaultdict, deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections import defaultdict
 
 import gtsam
 import numpy as np
@@ -60,7 +63,8 @@ from covo_gtsam.frontend import (
 )
 from covo_gtsam.io import format_relative_line, format_tum_line
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
-from covo_gtsam.pipeline import PREFETCH, kernel_threads, run_sequence
+from covo_gtsam.pipeline import kernel_threads, run_sequence
+from covo_gtsam.prefetch import PREFETCH, Prefetcher
 from covo_gtsam.rolling_shutter import compensate_points, frame_twists
 
 from _common import sequence_from_command_line
@@ -163,13 +167,9 @@ def pre_decoded_rate(seq, n: int) -> float:
     images = [(*seq.load(i), depth_offset(seq, i)) for i in range(n)]
     vo = VisualOdometry(seq.camera)
     start = time.perf_counter()
-    with kernel_threads(1), ThreadPoolExecutor(max_workers=PREFETCH) as pool:
-        pending = deque(pool.submit(vo.prepare, *images[i]) for i in range(min(PREFETCH, n)))
+    with kernel_threads(1), Prefetcher(lambda i: vo.prepare(*images[i]), n) as frames:
         for i in range(n):
-            frame = pending.popleft().result()
-            if i + PREFETCH < n:
-                pending.append(pool.submit(vo.prepare, *images[i + PREFETCH]))
-            vo.register_frame(frame, None, seq.timestamps[i])
+            vo.register_frame(frames.get(i), None, seq.timestamps[i])
     return n / (time.perf_counter() - start)
 
 
@@ -219,56 +219,42 @@ def watched_workers(profile: bool):
         pipeline._load_frame = original
 
 
-class SerialPool:
-    """Stands in for the run's prefetch pool: each frame is decoded and prepared when it is
-    submitted, on the submitting (main) thread, so no two stages overlap."""
-
-    def __init__(self, max_workers: int | None = None) -> None:
-        pass
-
-    def __enter__(self) -> SerialPool:
-        return self
-
-    def __exit__(self, *exc) -> bool:
-        return False
-
-    def submit(self, fn, *args) -> Future:
-        future = Future()
-        try:
-            future.set_result(fn(*args))
-        except BaseException as exc:  # as a pool hands it back
-            future.set_exception(exc)
-        return future
-
-
 @contextlib.contextmanager
-def serial_frames(on: bool):
-    """With ``on``, :func:`run_sequence` prepares its frames on the main thread (:class:`SerialPool`)."""
-    original = pipeline.ThreadPoolExecutor
-    if on:
-        pipeline.ThreadPoolExecutor = SerialPool
+def prefetch_mode(mode: str):
+    """:func:`run_sequence` prepares its frames in ``mode`` (:class:`~covo_gtsam.prefetch.Prefetcher`:
+    ``"process"``, ``"thread"`` or ``"serial"``, on the main thread when asked for)."""
+    original = pipeline.Prefetcher
+
+    class Forced(original):
+        def __init__(self, prepare, n, **kwargs):
+            super().__init__(prepare, n, **{**kwargs, "mode": mode})
+
+    pipeline.Prefetcher = Forced
     try:
         yield
     finally:
-        pipeline.ThreadPoolExecutor = original
+        pipeline.Prefetcher = original
 
 
-def in_process_run(seq, n: int, profile: bool = False, serial: bool = False) -> dict:
-    """One `covo run` (no figures) in this process: wall, process CPU, main-thread and worker CPU
-    (seconds), and with ``profile`` the merged ``pstats.Stats`` of all threads. ``serial``: the
-    frames prepared on the main thread (:func:`serial_frames`; "workers" is then their share of
-    the main thread's CPU)."""
+def in_process_run(seq, n: int, profile: bool = False, mode: str = "process") -> dict:
+    """One `covo run` (no figures) in this process with the frames prepared in ``mode``
+    (:func:`prefetch_mode`): wall, CPU of this process and its worker processes, of the main
+    thread and of the frames' preparation (seconds; on the main thread with ``"serial"``), and
+    with ``profile`` the merged ``pstats.Stats`` of all threads (not of worker processes)."""
     with tempfile.TemporaryDirectory() as out, watched_workers(profile) as (workers, profiles), \
-            serial_frames(serial), contextlib.redirect_stderr(io.StringIO()):  # the progress bar runs, unseen
+            prefetch_mode(mode), contextlib.redirect_stderr(io.StringIO()):  # the progress bar runs, unseen
         main = cProfile.Profile(time.thread_time) if profile else None
+        children = resource.getrusage(resource.RUSAGE_CHILDREN)
         wall, cpu, thread = time.perf_counter(), time.process_time(), time.thread_time()
         if main is not None:
             main.enable()
         run_sequence(seq, out, max_frames=n, plots=False, progress=True)
         if main is not None:
             main.disable()
-        result = {"wall": time.perf_counter() - wall, "process": time.process_time() - cpu,
-                  "main": time.thread_time() - thread, "workers": workers[0]}
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        forked = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
+        result = {"wall": time.perf_counter() - wall, "process": time.process_time() - cpu + forked,
+                  "main": time.thread_time() - thread, "workers": workers[0] + forked}
     if profile:
         stats = pstats.Stats(main)
         for p in profiles:
@@ -313,7 +299,7 @@ def main() -> None:
     for name, v in times.items():
         print(f"{name:<48} {np.median(v):7.2f} {np.percentile(v, 10):7.2f} {np.percentile(v, 90):7.2f}")
     print("(prepare frame includes ORB detect and depth lookup; stages run sequentially here, while `covo run`"
-          " decodes and prepares the next frames on worker threads)")
+          " decodes and prepares the next frames on worker processes)")
 
     # before the in-process runs, which hold many decoded frames (a forked child starts with the parent's
     # memory); ru_maxrss of the children is a running maximum: the short run goes first
@@ -328,20 +314,17 @@ def main() -> None:
     print(f"\nregister_frame on prepared frames, one thread: median {np.median(wall):.2f} ms wall, "
           f"{np.median(cpu):.2f} ms CPU (p10 {np.percentile(wall, 10):.2f}, p90 {np.percentile(wall, 90):.2f} ms wall)")
 
-    runs = [in_process_run(seq, n) for _ in range(3)]
-    r = sorted(runs, key=lambda x: x["process"])[1]  # the run with the median process CPU
     ms = 1e3 / n
-    print(f"\nCPU of a whole run in this process, ms per frame (median of 3 runs by process CPU; "
-          f"{n / r['wall']:.1f} frames/s wall):")
-    print(f"  process {r['process'] * ms:.1f} = main thread {r['main'] * ms:.1f} + prefetch workers "
-          f"{r['workers'] * ms:.1f} + other threads (OpenCV, BLAS, start-up) "
-          f"{(r['process'] - r['main'] - r['workers']) * ms:.1f}")
-    runs = [in_process_run(seq, n, serial=True) for _ in range(3)]
-    r = sorted(runs, key=lambda x: x["process"])[1]
-    print(f"the same with the frames prepared on the main thread (no overlap; on a shared machine the "
-          f"steadier figure to compare versions by): process {r['process'] * ms:.1f} = frame pairs and output "
-          f"{(r['main'] - r['workers']) * ms:.1f} + decoding and preparing {r['workers'] * ms:.1f}")
-    prof = in_process_run(seq, n, profile=True)
+    print("\nCPU of a whole run in this process, ms per frame (median of 3 runs by CPU), frames prepared:")
+    for mode, what in (("process", "on worker processes, as `covo run`"), ("thread", "on worker threads"),
+                       ("serial", "on the main thread when needed (no overlap; steadier on a busy machine)")):
+        runs = [in_process_run(seq, n, mode=mode) for _ in range(3)]
+        r = sorted(runs, key=lambda x: x["process"])[1]  # the run with the median CPU
+        pairs = r["main"] - (r["workers"] if mode == "serial" else 0.0)
+        print(f"  {what}: {r['process'] * ms:.1f} = frame pairs and output {pairs * ms:.1f} + decoding and "
+              f"preparing {r['workers'] * ms:.1f} + the rest {(r['process'] - pairs - r['workers']) * ms:.1f} "
+              f"({n / r['wall']:.1f} frames/s wall)")
+    prof = in_process_run(seq, n, profile=True, mode="thread")
     stages = stage_profile(prof["stats"])
     total = sum(stages.values())
     print(f"\nwhere the CPU goes (cProfile, CPU clock per thread, all threads; profiled: "

@@ -24,9 +24,9 @@ a thread-safe function ``i -> (grey, depth in metres)`` (e.g.
 :class:`~covo_gtsam.datasets.rosbag.RosbagSequence`, which streams the bag).
 
 The text files are flushed line by line, so an interrupted run leaves valid files for the frames
-processed so far. Decoding and feature extraction of the next frame run on a worker thread
-(OpenCV releases the GIL) while the current frame pair is solved on the main thread (GTSAM's
-Python callbacks stay there). These threads are the run's parallelism: during the run OpenCV and
+processed so far. Decoding and feature extraction of the next frames run on worker processes
+(threads where a fork is not safe; :mod:`covo_gtsam.prefetch`) while the current frame pair is
+solved on the main thread. These workers are the run's parallelism: during the run OpenCV and
 numpy's BLAS are kept to one thread each (:func:`kernel_threads`).
 """
 
@@ -36,8 +36,6 @@ import ctypes
 import os
 import threading
 import time
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,6 +52,7 @@ from .frontend import FrameData
 from .g2o import G2oWriter
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
 from .odometry import OdometryStep, VisualOdometry
+from .prefetch import Prefetcher
 from .steps import StepHistory
 from .validation import check_int
 
@@ -61,8 +60,6 @@ if TYPE_CHECKING:
     from .evaluation import RunEvaluation
 
 
-#: Frames decoded and prepared ahead on worker threads.
-PREFETCH = 2
 #: Files a run writes into its results folder (besides the figures of ``plots/``).
 RUN_FILES = ("trajectory.txt", "relative.txt", "graph.g2o", "metrics.json", "config.toml")
 
@@ -143,8 +140,8 @@ def kernel_threads(n: int = 1):
     """Keep OpenCV and numpy's BLAS library to ``n`` threads each inside the block (restored after),
     and glibc's ``malloc`` from handing freed memory back to the system (:func:`_keep_freed_memory`).
 
-    The run already keeps the cores busy (the frame pair on the main thread, :data:`PREFETCH`
-    frames prepared on workers). A multi-threaded BLAS (OpenBLAS) would split the small matrix
+    The run already keeps the cores busy (the frame pair on the main thread,
+    :data:`~covo_gtsam.prefetch.PREFETCH` frames prepared on workers). A multi-threaded BLAS (OpenBLAS) would split the small matrix
     products of the RANSAC and the solves over every core, and its threads spin while they wait
     for work: on two cores that cost a quarter of the run's CPU time and a fifth of its wall time,
     for the same results. BLAS is limited through ``threadpoolctl`` when it is installed.
@@ -280,58 +277,57 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
          max_frames: int | None, plots: bool, progress: bool, bag_out: str | None) -> RunResult:
     """The frame loop and the results of :func:`run_sequence`, in a checked and locked folder; the
     steps go to ``history``."""
-    bag = None
-    if bag_out is not None:
-        from .ros_io import OdometryBagWriter
-
-        bag = OdometryBagWriter(out, bag_out, camera_frame=getattr(seq, "camera_frame", "camera"))
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     start = time.perf_counter()
+    load = _frame_loader(seq, n, config.sensor.depth_scale, vo.camera)
+    stamps = getattr(seq, "depth_timestamps", None)
 
+    def prepare(i: int) -> FrameData | CovoError:
+        offset = 0.0 if stamps is None else float(stamps[i] - seq.timestamps[i])
+        return _load_frame(vo, load, i, offset)
+
+    # the workers start before the progress bar's thread and before any output file is open (a
+    # forked worker inherits neither); a streamed bag is read on threads of this process
     bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=n, desc=seq.name, unit="frame", dynamic_ncols=True)
     lost_count = 0
     index_of: dict[float, int] = {}
-    with TrajectoryWriter(out / "trajectory.txt") as traj_w, RelativePoseWriter(out / "relative.txt") as rel_w, \
-            G2oWriter(out / "graph.g2o") as g2o_w, ThreadPoolExecutor(max_workers=PREFETCH) as pool:
-        load = _frame_loader(seq, n, config.sensor.depth_scale, vo.camera)
+    with Prefetcher(prepare, n, mode="auto" if isinstance(seq, TumSequence) else "thread") as frames:
+        bag = None
+        if bag_out is not None:
+            from .ros_io import OdometryBagWriter
 
-        def submit(i: int):
-            stamps = getattr(seq, "depth_timestamps", None)
-            offset = 0.0 if stamps is None else float(stamps[i] - seq.timestamps[i])
-            return pool.submit(_load_frame, vo, load, i, offset)
+            bag = OdometryBagWriter(out, bag_out, camera_frame=getattr(seq, "camera_frame", "camera"))
+        if progress:
+            from tqdm import tqdm
 
-        pending = deque(submit(i) for i in range(min(PREFETCH, n)))
-        try:
-            for i in range(n):
-                frame = pending.popleft().result()
-                if i + PREFETCH < n:
-                    pending.append(submit(i + PREFETCH))
-                t = float(seq.timestamps[i])
-                if isinstance(frame, CovoError):
-                    step = history.add(vo.mark_lost(t, str(frame)))
-                else:
-                    step = history.add(vo.register_frame(frame, timestamp=t))
-                if step.has_pose:
-                    traj_w.write(t, step.pose.matrix())
-                    g2o_w.vertex(i, step.pose.matrix())
-                    index_of[t] = i
-                    if step.has_relative_pose:
-                        rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance, step.quality)
-                        g2o_w.edge(index_of[step.ref_timestamp], i, step.relative.matrix(), step.covariance)
-                    if bag is not None:
-                        bag.write(step)
-                else:
-                    lost_count += 1
-                if bar is not None:
-                    bar.set_postfix(lost=lost_count, pairs=step.num_pairs, refresh=False)
-                    bar.update(1)
-        finally:
-            if bag is not None:
-                bag.close()
+            bar = tqdm(total=n, desc=seq.name, unit="frame", dynamic_ncols=True)
+        with TrajectoryWriter(out / "trajectory.txt") as traj_w, RelativePoseWriter(out / "relative.txt") as rel_w, \
+                G2oWriter(out / "graph.g2o") as g2o_w:
+            try:
+                for i in range(n):
+                    frame = frames.get(i)
+                    t = float(seq.timestamps[i])
+                    if isinstance(frame, CovoError):
+                        step = history.add(vo.mark_lost(t, str(frame)))
+                    else:
+                        step = history.add(vo.register_frame(frame, timestamp=t))
+                    if step.has_pose:
+                        traj_w.write(t, step.pose.matrix())
+                        g2o_w.vertex(i, step.pose.matrix())
+                        index_of[t] = i
+                        if step.has_relative_pose:
+                            rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance, step.quality)
+                            g2o_w.edge(index_of[step.ref_timestamp], i, step.relative.matrix(), step.covariance)
+                        if bag is not None:
+                            bag.write(step)
+                    else:
+                        lost_count += 1
+                    if bar is not None:
+                        bar.set_postfix(lost=lost_count, pairs=step.num_pairs, refresh=False)
+                        bar.update(1)
+            finally:
+                if bag is not None:
+                    bag.close()
     if bar is not None:
         bar.close()
     elapsed = time.perf_counter() - start

@@ -14,9 +14,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import gtsam
-import numpy as np
-import pytest
+# as `covo run` does: OpenBLAS without threads of its own, so that runs fork their frame workers here too
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import gtsam  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE_DIR = REPO / "data" / "rgbd_dataset_freiburg1_rpy_head40"
