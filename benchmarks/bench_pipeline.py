@@ -15,8 +15,8 @@
 4. Where that CPU goes: the same run under ``cProfile`` with a CPU clock per thread
    (``time.thread_time``), main thread and workers merged, summed by stage (each stage the
    inclusive time of the functions named in :data:`STAGES`; "other" is the rest: Python glue,
-   thread hand-offs, step bookkeeping), frames prepared on worker threads. Profiling slows Python code down, so the shares matter,
-   not the absolute figures.
+   thread hand-offs, step bookkeeping), frames prepared on worker threads. Profiling slows Python
+   code down, so the shares matter, not the absolute figures.
 5. Whole process: `covo run --no-plots --quiet` as a child process (start-up, decoding and the
    worker processes included): wall frames/s, CPU (user + sys) per frame, and peak RSS for 60
    frames and for the whole sequence to show that memory stays flat.
@@ -64,7 +64,7 @@ from covo_gtsam.frontend import (
 from covo_gtsam.io import format_relative_line, format_tum_line
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 from covo_gtsam.pipeline import kernel_threads, run_sequence
-from covo_gtsam.prefetch import PREFETCH, Prefetcher
+from covo_gtsam.prefetch import Prefetcher
 from covo_gtsam.rolling_shutter import compensate_points, frame_twists
 
 from _common import sequence_from_command_line

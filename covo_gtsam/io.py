@@ -283,12 +283,30 @@ def write_json(path: str | os.PathLike, obj) -> None:
         raise
 
 
+#: Descriptors of the folder locks this process holds; a forked child closes its copies at once.
+_HELD_LOCKS: set[int] = set()
+
+
+def _close_locks_in_child() -> None:
+    for fd in _HELD_LOCKS:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _HELD_LOCKS.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_close_locks_in_child)
+
+
 class FolderLock:
     """Exclusive lock on a folder for the time one command writes into it (``with FolderLock(path):``).
 
     An advisory ``flock`` on the folder itself: it leaves no file behind and is released when the
-    process ends, however it ends. A second writer gets :class:`DatasetError` at once instead of
-    interleaving its lines with the first one's. Without ``fcntl`` (Windows) there is no lock.
+    process ends, however it ends (a forked child, such as a frame worker, does not keep it). A
+    second writer gets :class:`DatasetError` at once instead of interleaving its lines with the
+    first one's. Without ``fcntl`` (Windows) there is no lock.
     """
 
     def __init__(self, path: str | os.PathLike) -> None:
@@ -313,10 +331,12 @@ class FolderLock:
             raise DatasetError(f"{self.path}: another covo command is writing into this output folder; "
                                "wait for it or choose another --out") from None
         self._fd = fd
+        _HELD_LOCKS.add(fd)
         return self
 
     def release(self) -> None:
         if self._fd is not None:
+            _HELD_LOCKS.discard(self._fd)
             os.close(self._fd)  # closing the descriptor releases the flock
             self._fd = None
 

@@ -7,8 +7,9 @@ next :data:`PREFETCH` frames are prepared beside it. Two ways:
 
 * ``"process"``: forked worker processes, worker k preparing the frames ``k, k + W, ...``. A
   result is pickled (protocol 5) with its arrays' data out of band: the data goes into one of
-  :data:`SLOTS` slots of shared memory per worker, the rest (a few kilobytes) through a pipe; the
-  odometry copies the arrays out and frees the slot. The odometry's thread and the workers share
+  :data:`SLOTS` slots of anonymous shared memory per worker, the rest (a few kilobytes) through a
+  pipe; the odometry copies the arrays out and acknowledges the slot through a second pipe. A
+  worker ends with its parent (``PR_SET_PDEATHSIG``; else it notices within a second). The odometry's thread and the workers share
   no interpreter lock, which on two cores made threads cost about 6 ms of CPU per frame more than
   the same work done one after the other (benchmarks/README.md). Only where ``fork`` is safe:
   the platform has it and this process runs one thread (checked in ``/proc/self/task``), as
@@ -27,6 +28,7 @@ import multiprocessing
 import os
 import pickle
 import sys
+import traceback
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
@@ -67,40 +69,74 @@ def _layout(sizes: list[int]) -> list[int]:
     return offsets + [at]
 
 
-def _serve(prepare: Callable[[int], object], indices: range, conn, shared: mmap.mmap, free) -> None:
-    """Worker process: prepare ``indices`` in order and hand over each result: pickled (protocol 5)
-    with its arrays' data written into a free slot of ``shared`` (``free`` counts the free slots;
-    the parent releases one when it has copied it out) and the rest sent through ``conn``. An
-    exception that is not a frame's error ends the worker after it is sent (the parent raises it)."""
-    slot, parent = 0, os.getppid()
+class _RemoteTraceback(Exception):
+    """The traceback of an exception raised in a worker process (its ``__cause__`` in the parent)."""
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+
+def _die_with_parent(parent: int) -> bool:
+    """In a worker: ask Linux to end this process when its parent ends (``PR_SET_PDEATHSIG``);
+    False if the parent has already gone."""
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None).prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux's C library: the ack wait checks the parent
+        pass
+    return os.getppid() == parent
+
+
+def _error_result(i: int, exc: BaseException) -> tuple[bytes, list]:
+    """``(False, exc)`` pickled with the worker's traceback; an exception that does not survive a
+    pickle round trip is replaced by a RuntimeError naming it."""
+    tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    try:
+        head = pickle.dumps((False, exc, tb), protocol=5)
+        pickle.loads(head)
+    except Exception:  # noqa: BLE001 - any failure to pickle or unpickle it
+        head = pickle.dumps((False, RuntimeError(f"frame {i}: {type(exc).__name__}: {exc}"), tb), protocol=5)
+    return head, []
+
+
+def _serve(prepare: Callable[[int], object], indices: range, conn, acks, shared: mmap.mmap, parent: int) -> None:
+    """Worker process: prepare ``indices`` in order and hand over each result, pickled (protocol 5):
+    its arrays' data written into the next slot of ``shared`` (once the parent has acknowledged
+    through ``acks`` that it copied that slot out), the rest sent through ``conn``. An exception
+    that is not a frame's error is sent with its traceback and ends the worker."""
+    if not _die_with_parent(parent):
+        return
+    slot, free = 0, SLOTS
     try:
         for i in indices:
-            try:
-                out = (True, prepare(i))
-            except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it
-                out = (False, exc)
             buffers: list[pickle.PickleBuffer] = []
             try:
-                head = pickle.dumps(out, protocol=5, buffer_callback=buffers.append)
-            except (TypeError, AttributeError, ValueError, pickle.PicklingError) as exc:  # does not pickle
-                out, buffers = (False, RuntimeError(f"frame {i}: {out[1]!r} ({exc})")), []
-                head = pickle.dumps(out, protocol=5)
+                ok, head = True, pickle.dumps((True, prepare(i), ""), protocol=5, buffer_callback=buffers.append)
+            except BaseException as exc:  # noqa: BLE001 - handed to the parent, which raises it
+                ok, (head, buffers) = False, _error_result(i, exc)
             raws = [b.raw() for b in buffers]
             offsets = _layout([r.nbytes for r in raws])
-            if offsets[-1] <= SLOT_BYTES:
-                while not free.acquire(timeout=1.0):
-                    if os.getppid() != parent:  # the parent died without stopping this worker
+            if offsets[-1] > SLOT_BYTES:  # too large for a slot: the data through the pipe
+                conn.send((head, None, [r.nbytes for r in raws]))
+                for r in raws:
+                    conn.send_bytes(r)
+            else:
+                while free == 0:  # wait until the parent has copied out the oldest slot
+                    if acks.poll(1.0):
+                        free += len(acks.recv_bytes())
+                    elif os.getppid() != parent:  # the parent died without stopping this worker
                         return
+                free -= 1
                 base = slot * SLOT_BYTES
                 for r, at in zip(raws, offsets):
                     shared[base + at:base + at + r.nbytes] = r
                 conn.send((head, slot, [r.nbytes for r in raws]))
                 slot = (slot + 1) % SLOTS
-            else:
-                conn.send((head, None, [bytes(r) for r in raws]))
-            if not out[0]:
+            if not ok:
                 return
-    except (BrokenPipeError, KeyboardInterrupt, EOFError):  # the parent stopped reading
+    except (BrokenPipeError, KeyboardInterrupt, EOFError, OSError):  # the parent stopped reading
         pass
     finally:
         conn.close()
@@ -109,10 +145,11 @@ def _serve(prepare: Callable[[int], object], indices: range, conn, shared: mmap.
 class Prefetcher:
     """``get(i)`` for i = 0, 1, ..., n - 1 in turn returns ``prepare(i)``, computed ahead on
     :data:`PREFETCH` worker processes (``mode="process"``, where :func:`can_fork`) or threads.
-    Use as a context manager; leaving it stops the workers.
+    Use as a context manager; leaving it stops the workers. Arrays in the results are writable
+    and the caller's own.
 
     ``mode``: ``"process"``, ``"thread"``, ``"serial"`` or ``"auto"`` (processes where they can
-    be forked, else threads).
+    be forked, else threads; also threads when the workers cannot be started).
     """
 
     def __init__(self, prepare: Callable[[int], object], n: int, mode: str = "auto", workers: int = PREFETCH):
@@ -125,13 +162,18 @@ class Prefetcher:
         self._next = 0
         self._procs: list = []
         self._conns: list = []
-        self._shared: list = []
         self._pool = None
         self._pending: deque = deque()
         self._prepare = prepare
         if self.mode == "process":
-            self._start_processes()
-        elif self.mode == "thread":
+            try:
+                self._start_processes()
+            except OSError:
+                self.close()
+                if mode == "process":
+                    raise
+                self.mode = "thread"  # e.g. no memory or processes left to start them
+        if self.mode == "thread":
             self._pool = ThreadPoolExecutor(max_workers=self.workers)
             self._pending.extend(self._pool.submit(prepare, i) for i in range(min(self.workers, n)))
 
@@ -140,16 +182,50 @@ class Prefetcher:
         for stream in (sys.stdout, sys.stderr):  # else a child's exit could write their buffers again
             if stream is not None:
                 stream.flush()
-        for k in range(min(self.workers, self.n)):
-            recv, send = ctx.Pipe(duplex=False)
-            shared, free = mmap.mmap(-1, SLOTS * SLOT_BYTES), ctx.Semaphore(SLOTS)
-            proc = ctx.Process(target=_serve, args=(self._prepare, range(k, self.n, self.workers), send, shared, free),
-                               name=f"covo-prepare-{k}", daemon=True)
-            proc.start()
-            send.close()
-            self._procs.append(proc)
-            self._conns.append(recv)
-            self._shared.append((shared, free))
+        try:
+            for k in range(min(self.workers, self.n)):
+                recv, send = ctx.Pipe(duplex=False)
+                ack_recv, ack_send = ctx.Pipe(duplex=False)
+                shared = mmap.mmap(-1, SLOTS * SLOT_BYTES)
+                self._conns.append((recv, ack_send, shared))
+                proc = ctx.Process(target=_serve, name=f"covo-prepare-{k}", daemon=True,
+                                   args=(self._prepare, range(k, self.n, self.workers), send, ack_recv, shared,
+                                         os.getpid()))
+                proc.start()
+                self._procs.append(proc)
+                send.close()
+                ack_recv.close()
+        except BaseException:
+            self.close()
+            raise
+
+    def _receive(self, i: int):
+        """Frame ``i``'s result from its worker process."""
+        k = i % self.workers
+        conn, acks, shared = self._conns[k]
+        try:
+            head, slot, sizes = conn.recv()
+            if slot is None:  # through the pipe, into writable buffers
+                buffers = [bytearray(n) for n in sizes]
+                for b in buffers:
+                    conn.recv_bytes_into(b)
+            else:  # copy the arrays out of the slot (writable), then hand the slot back
+                with memoryview(shared) as view:
+                    base = slot * SLOT_BYTES
+                    buffers = [bytearray(view[base + at:base + at + n]) for at, n in zip(_layout(sizes), sizes)]
+                try:
+                    acks.send_bytes(b"1")
+                except BrokenPipeError:  # the worker has sent its last frame and ended
+                    pass
+        except EOFError:
+            proc = self._procs[k]
+            proc.join(1.0)
+            raise CovoError(f"frame {i}: the process preparing frames stopped unexpectedly "
+                            f"(exit code {proc.exitcode})") from None
+        ok, out, tb = pickle.loads(head, buffers=buffers)
+        if not ok:
+            raise out from _RemoteTraceback(f"\n(in the worker process)\n{tb}")
+        return out
 
     def get(self, i: int):
         """``prepare(i)``; ``i`` must be the next index. Raises what ``prepare`` raised (other than
@@ -159,29 +235,11 @@ class Prefetcher:
         self._next += 1
         if self.mode == "serial":
             return self._prepare(i)
-        if self._pool is not None:
-            out = self._pending.popleft().result()
-            if i + self.workers < self.n:
-                self._pending.append(self._pool.submit(self._prepare, i + self.workers))
-            return out
-        k = i % self.workers
-        try:
-            head, slot, buffers = self._conns[k].recv()
-        except EOFError:
-            proc = self._procs[k]
-            proc.join(1.0)
-            raise CovoError(f"frame {i}: the process preparing frames stopped unexpectedly "
-                            f"(exit code {proc.exitcode})") from None
-        if slot is not None:  # copy the arrays out of the slot (writable), then free it for the worker
-            shared, free = self._shared[k]
-            view = memoryview(shared)[slot * SLOT_BYTES:(slot + 1) * SLOT_BYTES]
-            offsets = _layout(buffers)
-            buffers = [bytearray(view[at:at + n]) for at, n in zip(offsets, buffers)]
-            view.release()
-            free.release()
-        ok, out = pickle.loads(head, buffers=buffers)
-        if not ok:
-            raise out
+        if self._pool is None:
+            return self._receive(i)
+        out = self._pending.popleft().result()
+        if i + self.workers < self.n:
+            self._pending.append(self._pool.submit(self._prepare, i + self.workers))
         return out
 
     def close(self) -> None:
@@ -191,16 +249,20 @@ class Prefetcher:
                 f.cancel()
             self._pool.shutdown(wait=True)
             self._pool = None
-        for conn in self._conns:
+        for conn, acks, _ in self._conns:
             conn.close()
+            acks.close()
         for proc in self._procs:
             proc.join(0.0 if self._next < self.n else 1.0)
             if proc.is_alive():
                 proc.terminate()
                 proc.join()
-        for shared, _ in self._shared:
-            shared.close()
-        self._conns, self._procs, self._shared = [], [], []
+        for *_, shared in self._conns:
+            try:
+                shared.close()
+            except BufferError:  # a view of it is still alive (an interrupted copy): freed with it
+                pass
+        self._conns, self._procs = [], []
 
     def __enter__(self) -> Prefetcher:
         return self

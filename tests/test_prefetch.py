@@ -49,6 +49,7 @@ def test_a_result_larger_than_a_slot_goes_through_the_pipe():
         for i in range(3):
             out = frames.get(i)
             assert out.shape == (prefetch.SLOT_BYTES // 8 + 1,) and np.all(out == i)
+            assert out.flags.writeable
 
 
 def _fails_at_3(i: int):
@@ -71,6 +72,32 @@ def test_errors_arrive_in_order(mode):
         assert [frames.get(i) for i in range(3)] == [0, 1, 2]
         with pytest.raises(KeyError, match="boom"):
             frames.get(3)
+
+
+class TwoArgError(Exception):
+    def __init__(self, path, why):
+        super().__init__(f"{path}: {why}")
+
+
+def _raises_unpicklable(i: int):
+    if i == 1:
+        raise TwoArgError("/x", "bad")
+    return i
+
+
+@needs_fork
+def test_a_worker_exception_keeps_its_message_and_traceback():
+    with Prefetcher(_raises_unpicklable, 4, mode="process") as frames:
+        assert frames.get(0) == 0
+        with pytest.raises(RuntimeError, match="TwoArgError: /x: bad") as info:
+            frames.get(1)
+    assert "_raises_unpicklable" in str(info.value.__cause__)  # the worker's traceback
+    with Prefetcher(_fails_at_3, 5, mode="process") as frames:
+        for i in range(3):
+            frames.get(i)
+        with pytest.raises(KeyError) as info:
+            frames.get(3)
+    assert "_fails_at_3" in str(info.value.__cause__)
 
 
 def _dies_at_2(i: int):
@@ -101,6 +128,27 @@ def test_closing_early_stops_the_workers():
     frames.close()
     assert time.perf_counter() - start < 5.0
     assert procs and not any(p.is_alive() for p in procs)
+
+
+@needs_fork
+def test_a_forked_child_does_not_keep_the_folder_lock(tmp_path):
+    from covo_gtsam.io import FolderLock
+
+    lock = FolderLock(tmp_path).acquire()
+    started, ready = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child (its fork handlers done) lives on while the parent releases the lock
+        os.write(ready, b"1")
+        time.sleep(1.0)
+        os._exit(0)
+    try:
+        assert os.read(started, 1) == b"1"
+        lock.release()
+        FolderLock(tmp_path).acquire().release()  # a DatasetError if the child still held it
+    finally:
+        os.waitpid(pid, 0)
+        os.close(started)
+        os.close(ready)
 
 
 def test_fork_is_not_taken_beside_other_threads():
