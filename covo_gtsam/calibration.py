@@ -129,6 +129,23 @@ def latency_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.nd
     return np.outer(b, b)
 
 
+#: Shares of the latency basis's rotation block spread evenly over the three axes (its size kept)
+#: among which :class:`TwistChanges` chooses by how well each predicted the changes seen.
+ISOTROPIC_SHARES = (0.0, 0.25, 0.5, 0.75, 1.0)
+#: Weight of the previous score per new change (a memory of about 30 changes).
+SHARE_MEMORY = 0.97
+#: Changes scored before the share moves from 0.
+SHARE_MIN_CHANGES = 5
+
+
+def _isotropic_mix(B: np.ndarray, share: float) -> np.ndarray:
+    """``B`` (6, 6) with ``share`` of its rotation block's trace spread evenly over the three axes."""
+    out = np.zeros((6, 6))
+    R = B[:3, :3]
+    out[:3, :3] = (1.0 - share) * R + share * np.trace(R) / 3.0 * np.eye(3)
+    return out
+
+
 class TwistChanges:
     """Basis of the ``latency`` term from the recent changes of the camera's twist (no ground truth).
 
@@ -143,19 +160,56 @@ class TwistChanges:
     the basis (odometry); rotation block only (a translation change of the twist is below its noise). The
     mean is clipped to positive semidefinite (clipping each term instead would leave most of the
     noise in). Zero until a change has been seen.
+
+    The mean gives the changes' size and their direction over the window. Where the motion keeps
+    its axis (fr1_rpy turns about one axis for seconds) the direction carries over to the next
+    pair; where the axis wanders within a few frames it does not, and a basis that is thin across
+    the recent direction leaves the next change uncovered. :attr:`share` of the rotation block's
+    trace is therefore spread evenly over the three axes, the share among
+    :data:`ISOTROPIC_SHARES` under whose bases the changes seen so far were most likely (each
+    change scored against the basis before it, with its noise; scores fade by
+    :data:`SHARE_MEMORY` per change; 0 for the first :data:`SHARE_MIN_CHANGES` changes). The run
+    learns it from its own twists: no ground truth.
     """
 
     def __init__(self, window: int = 10) -> None:
         from collections import deque
 
         self._changes = deque(maxlen=window)
+        self._sum = np.zeros((6, 6))  # of the changes in the window
+        self._mean = np.zeros((6, 6))  # their mean, clipped to positive semidefinite
+        self._scores = np.zeros(len(ISOTROPIC_SHARES))
+        self._scored = 0
+        self.share = 0.0
+
+    def _update_mean(self) -> None:
+        """The mean of the window's changes, clipped to positive semidefinite."""
+        if not self._changes:
+            self._mean = np.zeros((6, 6))
+            return
+        w, U = np.linalg.eigh(self._sum / len(self._changes))
+        self._mean = (U * np.clip(w, 0.0, None)) @ U.T
 
     def basis(self) -> np.ndarray:
         """6x6 basis (tangent ``[omega, v]``, (rad/s)^2 blocks) for the next pair."""
         if not self._changes:
             return np.zeros((6, 6))
-        w, U = np.linalg.eigh(np.mean(self._changes, axis=0))
-        return (U * np.clip(w, 0.0, None)) @ U.T
+        return _isotropic_mix(self._mean, self.share)
+
+    def _score(self, b: np.ndarray, noise: np.ndarray) -> None:
+        """Score each share of :data:`ISOTROPIC_SHARES` by the log-likelihood of the observed change
+        ``b`` (3,) under the basis it gave before ``b`` was seen, plus the change's noise (3, 3)."""
+        M = self._mean[:3, :3]
+        a = np.asarray(ISOTROPIC_SHARES)[:, None, None]
+        C = (1.0 - a) * M + a * (np.trace(M) / 3.0) * np.eye(3) + noise
+        sign, logdet = np.linalg.slogdet(C)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            quad = np.einsum("i,kij,j->k", b, np.linalg.inv(C), b)
+            ll = np.where(sign > 0, -0.5 * quad - 0.5 * logdet, -np.inf)
+        self._scores = SHARE_MEMORY * self._scores + ll
+        self._scored += 1
+        if self._scored >= SHARE_MIN_CHANGES:
+            self.share = float(ISOTROPIC_SHARES[int(np.argmax(self._scores))])
 
     def add(self, T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray, noise_ref: np.ndarray,
             noise_cur: np.ndarray, intervals: int = 1) -> None:
@@ -167,14 +221,24 @@ class TwistChanges:
         import gtsam
 
         Ad = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float)).inverse().AdjointMap()
-        X = (latency_basis(T_ref_cur, twist_ref, twist_cur) - (noise_cur + Ad @ noise_ref @ Ad.T)) / intervals**2
-        X[3:, :] = 0.0
-        X[:, 3:] = 0.0
-        if np.all(np.isfinite(X)):
-            self._changes.append(X)
+        change = twist_change(T_ref_cur, twist_ref, twist_cur) / intervals
+        noise = (noise_cur + Ad @ noise_ref @ Ad.T) / intervals**2
+        if not (np.all(np.isfinite(change)) and np.all(np.isfinite(noise))):
+            return
+        if self._changes:
+            self._score(change[:3], noise[:3, :3])
+        X = np.zeros((6, 6))
+        X[:3, :3] = np.outer(change[:3], change[:3]) - noise[:3, :3]
+        if len(self._changes) == self._changes.maxlen:
+            self._sum -= self._changes[0]
+        self._changes.append(X)
+        self._sum += X
+        self._update_mean()
 
     def clear(self) -> None:
         self._changes.clear()
+        self._sum = np.zeros((6, 6))
+        self._update_mean()
 
 
 def sensor_covariance(point_cov: np.ndarray, correlation_factor: float, sigma_rot_rad: float,

@@ -541,9 +541,11 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def self_calibration(self) -> dict:
         """What the run learnt about its sensor without ground truth: the frame clock's period (s),
-        the scatter of the stamps around it (s.d. of the clock offsets, s) and the integrity
-        statistic's scale (median over the run's pairs / median of chi2(6))."""
+        the scatter of the stamps around it (s.d. of the clock offsets, s), the integrity
+        statistic's scale (median over the run's pairs / median of chi2(6)) and the share of the
+        twist changes' basis spread over all axes (:class:`~covo_gtsam.calibration.TwistChanges`)."""
         offsets = self._placed_offsets
         return {"frame_period_s": self._clock.period_s,
                 "stamp_jitter_s": float(np.std(offsets)) if len(offsets) > 2 else None,
-                "integrity_scale": self._integrity.scale}
+                "integrity_scale": self._integrity.scale,
+                "twist_change_isotropic_share": self._twist_changes.share}

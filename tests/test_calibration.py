@@ -221,11 +221,9 @@ def test_twist_changes_subtract_the_estimation_noise_and_use_only_past_pairs():
     assert np.abs(basis(np.zeros((6, 6)), np.zeros((6, 6))) - expected).max() > 3 * tol  # no subtraction
     assert np.abs(basis(3 * N_ref, 3 * N_cur) - expected).max() > 3 * tol  # too much
     # without Ad: the earlier twist's noise subtracted in the wrong axes
-    tc = TwistChanges(window=n)
-    for x, y in zip(a, b):
-        X = np.outer(twist_change(T.matrix(), x, y), twist_change(T.matrix(), x, y)) - (N_cur + N_ref)
-        tc._changes.append(np.pad(X[:3, :3], ((0, 3), (0, 3))))
-    assert np.abs(tc.basis() - expected).max() > 3 * tol
+    wrong = np.mean([np.outer(twist_change(T.matrix(), x, y), twist_change(T.matrix(), x, y))[:3, :3]
+                     - (N_cur + N_ref)[:3, :3] for x, y in zip(a, b)], axis=0)
+    assert np.abs(np.pad(wrong, ((0, 3), (0, 3))) - expected).max() > 3 * tol
     # pure noise (no change): far below the raw outer products
     noise_only = TwistChanges(window=n)
     raw = np.zeros((3, 3))
@@ -264,3 +262,27 @@ def test_fit_recovers_frame_level_terms():
     assert fit.config_values()["timing_sigma_s"] == fit.sigmas["timing"]
     with pytest.raises(InputError, match="basis 'timing'"):
         fit_sensor_terms(e, P, bases={"timing": bases["timing"][:5]})
+
+
+def test_twist_changes_learn_how_much_of_the_direction_carries_over():
+    """Changes about one fixed axis keep the basis's direction (share 0); changes whose axis is new
+    each time spread it over all axes (share at least 0.75), the basis's size (trace) kept."""
+    from covo_gtsam.calibration import ISOTROPIC_SHARES, TwistChanges
+
+    rng = np.random.default_rng(4)
+    T = np.eye(4)
+    noise = np.diag([1e-4] * 3 + [1e-6] * 3)
+    axis = np.array([0.0, 0.0, 1.0])
+    fixed, wandering = TwistChanges(), TwistChanges()
+    twist_f, twist_w = np.zeros(6), np.zeros(6)
+    for _ in range(60):
+        step_f = np.concatenate([axis * rng.normal(scale=0.3), np.zeros(3)])
+        d = rng.normal(size=3)
+        step_w = np.concatenate([0.3 * d / np.linalg.norm(d), np.zeros(3)])
+        fixed.add(T, twist_f, twist_f + step_f, noise, noise)
+        wandering.add(T, twist_w, twist_w + step_w, noise, noise)
+        twist_f, twist_w = twist_f + step_f, twist_w + step_w
+    assert fixed.share == ISOTROPIC_SHARES[0]
+    assert wandering.share >= 0.75
+    assert np.trace(wandering.basis()) == pytest.approx(np.trace(wandering._mean), rel=1e-12)
+    assert np.all(wandering.basis()[3:] == 0) and np.all(wandering.basis()[:, 3:] == 0)
