@@ -146,6 +146,10 @@ def _isotropic_mix(B: np.ndarray, share: float) -> np.ndarray:
     return out
 
 
+#: Restarts of the fit's Nelder-Mead search from its own best point, at most.
+FIT_RESTARTS = 5
+
+
 class TwistChanges:
     """Basis of the ``latency`` term from the recent changes of the camera's twist (no ground truth).
 
@@ -345,6 +349,14 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
                        options={"maxiter": 4000 * (1 + len(names)), "xatol": 1e-6, "fatol": 1e-10})
         if best is None or res.fun < best.fun:
             best = res
+    # Nelder-Mead's simplex can collapse short of the maximum: restart it from its own best point
+    # (a fresh simplex) while that still gains
+    for _ in range(FIT_RESTARTS):
+        res = minimize(cost, best.x, method="Nelder-Mead",
+                       options={"maxiter": 4000 * (1 + len(names)), "xatol": 1e-6, "fatol": 1e-10})
+        if not res.fun < best.fun - 1e-9:
+            break
+        best = res
     kappa, s_r, s_t, sig = params(best.x)
     return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors),
                        {**{k: float(v) for k, v in sig.items()}, **{k: 0.0 for k in dead}})
