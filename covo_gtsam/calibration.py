@@ -206,10 +206,12 @@ class TwistChanges:
         M = self._mean[:3, :3]
         a = np.asarray(ISOTROPIC_SHARES)[:, None, None]
         C = (1.0 - a) * M + a * (np.trace(M) / 3.0) * np.eye(3) + noise
-        sign, logdet = np.linalg.slogdet(C)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            quad = np.einsum("i,kij,j->k", b, np.linalg.inv(C), b)
-            ll = np.where(sign > 0, -0.5 * quad - 0.5 * logdet, -np.inf)
+        # by eigenvalues, floored far below the largest: a basis thin across b scores very low
+        # (not a singular-matrix error), however small the change's noise
+        w, U = np.linalg.eigh(C)
+        w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+        proj = np.einsum("kij,i->kj", U, b)
+        ll = -0.5 * np.sum(proj**2 / w, axis=1) - 0.5 * np.sum(np.log(w), axis=1)
         self._scores = SHARE_MEMORY * self._scores + ll
         self._scored += 1
         if self._scored >= SHARE_MIN_CHANGES:
