@@ -300,7 +300,10 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=n, desc=seq.name, unit="frame", dynamic_ncols=True)
+            class Bar(tqdm):
+                monitor_interval = 0  # no monitor thread: a later run in this process can fork its workers too
+
+            bar = Bar(total=n, desc=seq.name, unit="frame", dynamic_ncols=True)
         with TrajectoryWriter(out / "trajectory.txt") as traj_w, RelativePoseWriter(out / "relative.txt") as rel_w, \
                 G2oWriter(out / "graph.g2o") as g2o_w:
             try:

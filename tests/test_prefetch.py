@@ -171,17 +171,50 @@ def test_fork_is_not_taken_beside_other_threads():
 @needs_fork
 def test_a_run_is_the_same_with_processes_and_threads(sample_dir, tmp_path, monkeypatch):
     modes = []
+    forced = {"mode": "process"}
 
-    class Spy(Prefetcher):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
+    class Forced(Prefetcher):  # earlier tests may have left idle threads (a progress bar's monitor)
+        def __init__(self, prepare, n, **kwargs):
+            super().__init__(prepare, n, **{**kwargs, "mode": forced["mode"]})
             modes.append(self.mode)
 
-    monkeypatch.setattr(pipeline, "Prefetcher", Spy)
+    monkeypatch.setattr(pipeline, "Prefetcher", Forced)
     seq = TumSequence(sample_dir)
     pipeline.run_sequence(seq, tmp_path / "p", plots=False, progress=False, max_frames=20)
-    monkeypatch.setattr(prefetch, "can_fork", lambda: False)
+    forced["mode"] = "thread"
     pipeline.run_sequence(seq, tmp_path / "t", plots=False, progress=False, max_frames=20)
     assert modes == ["process", "thread"]
     for name in ("relative.txt", "trajectory.txt", "graph.g2o"):
         assert (tmp_path / "p" / name).read_bytes() == (tmp_path / "t" / name).read_bytes(), name
+
+
+def test_covo_run_takes_processes_where_a_fork_is_safe(monkeypatch):
+    """The run's own choice (mode "auto"): processes where :func:`can_fork`, else threads."""
+    if "fork" not in __import__("multiprocessing").get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    monkeypatch.setattr(prefetch, "can_fork", lambda: True)
+    with Prefetcher(_arrays, 2) as frames:
+        assert frames.mode == "process" and frames.get(0)["i"] == 0
+    monkeypatch.setattr(prefetch, "can_fork", lambda: False)
+    with Prefetcher(_arrays, 2) as frames:
+        assert frames.mode == "thread" and frames.get(0)["i"] == 0
+    with Prefetcher(_arrays, 1) as frames:  # one frame: nothing to prepare ahead
+        assert frames.mode == "thread"
+
+
+def test_a_run_with_a_progress_bar_leaves_no_thread_behind(sample_dir, tmp_path, capsys):
+    """tqdm's monitor thread would outlive the run by seconds and keep the next run in this process
+    from forking its workers; the run's bar has none."""
+    if not os.path.isdir("/proc/self/task"):
+        pytest.skip("threads are counted in /proc/self/task")
+
+    def threads() -> int:
+        return len(os.listdir("/proc/self/task"))
+
+    before = threads()
+    pipeline.run_sequence(TumSequence(sample_dir), tmp_path / "o", plots=False, progress=True, max_frames=3)
+    deadline = time.monotonic() + 2.0  # threads that are ending get two seconds
+    while threads() > before and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert threads() <= before
+    assert "frame" in capsys.readouterr().err  # the bar was drawn
