@@ -286,3 +286,22 @@ def test_twist_changes_learn_how_much_of_the_direction_carries_over():
     assert wandering.share >= 0.75
     assert np.trace(wandering.basis()) == pytest.approx(np.trace(wandering._mean), rel=1e-12)
     assert np.all(wandering.basis()[3:] == 0) and np.all(wandering.basis()[:, 3:] == 0)
+
+
+def test_twist_changes_clear_forgets_the_window():
+    """After clear() the basis is that of a fresh history fed the same later changes."""
+    from covo_gtsam.calibration import TwistChanges
+
+    rng = np.random.default_rng(7)
+    noise = np.eye(6) * 1e-4
+    early = [rng.normal(size=(2, 6)) for _ in range(8)]
+    late = [rng.normal(size=(2, 6)) for _ in range(4)]
+    used, fresh = TwistChanges(), TwistChanges()
+    for a, b in early:
+        used.add(np.eye(4), a, b, noise, noise)
+    used.clear()
+    for a, b in late:
+        used.add(np.eye(4), a, b, noise, noise)
+        fresh.add(np.eye(4), a, b, noise, noise)
+    used.share = fresh.share  # the share's scores are kept on purpose: they describe the motion
+    np.testing.assert_allclose(used.basis(), fresh.basis(), rtol=1e-12, atol=1e-15)
