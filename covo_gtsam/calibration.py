@@ -132,7 +132,7 @@ def latency_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.nd
 #: Shares of the latency basis's rotation block spread evenly over the three axes (its size kept)
 #: among which :class:`TwistChanges` chooses by how well each predicted the changes seen.
 ISOTROPIC_SHARES = (0.0, 0.25, 0.5, 0.75, 1.0)
-#: Weight of the previous score per new change (a memory of about 30 changes).
+#: Weight of the previous score per new change (a fading memory: 1 / (1 - 0.97), about 33 changes).
 SHARE_MEMORY = 0.97
 #: Changes scored before the share moves from 0.
 SHARE_MIN_CHANGES = 5
@@ -173,7 +173,10 @@ class TwistChanges:
     :data:`ISOTROPIC_SHARES` under whose bases the changes seen so far were most likely (each
     change scored against the basis before it, with its noise; scores fade by
     :data:`SHARE_MEMORY` per change; 0 for the first :data:`SHARE_MIN_CHANGES` changes). The run
-    learns it from its own twists: no ground truth.
+    learns it from its own twists: no ground truth. After a long stretch about one axis the scores
+    are far apart, and a switch to wandering turns takes about 100-150 changes to move the share
+    (about 50 from the start). :meth:`clear` (tracking lost) empties the window but keeps the
+    scores and the share: they describe the camera's motion, not the last pairs.
     """
 
     def __init__(self, window: int = 10) -> None:
@@ -209,9 +212,11 @@ class TwistChanges:
         # by eigenvalues, floored far below the largest: a basis thin across b scores very low
         # (not a singular-matrix error), however small the change's noise
         w, U = np.linalg.eigh(C)
-        w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+        w = np.maximum(w, max(1e-12 * float(w.max()), 1e-200))
         proj = np.einsum("kij,i->kj", U, b)
         ll = -0.5 * np.sum(proj**2 / w, axis=1) - 0.5 * np.sum(np.log(w), axis=1)
+        if not np.all(np.isfinite(ll)):  # a change no share can score: it says nothing about the shares
+            return
         self._scores = SHARE_MEMORY * self._scores + ll
         self._scored += 1
         if self._scored >= SHARE_MIN_CHANGES:
@@ -235,6 +240,8 @@ class TwistChanges:
             self._score(change[:3], noise[:3, :3])
         X = np.zeros((6, 6))
         X[:3, :3] = np.outer(change[:3], change[:3]) - noise[:3, :3]
+        if not np.all(np.isfinite(X)):
+            return
         if len(self._changes) == self._changes.maxlen:
             self._sum -= self._changes[0]
         self._changes.append(X)

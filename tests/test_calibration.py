@@ -305,3 +305,35 @@ def test_twist_changes_clear_forgets_the_window():
         fresh.add(np.eye(4), a, b, noise, noise)
     used.share = fresh.share  # the share's scores are kept on purpose: they describe the motion
     np.testing.assert_allclose(used.basis(), fresh.basis(), rtol=1e-12, atol=1e-15)
+
+
+def test_twist_changes_share_waits_then_follows_a_change_of_motion():
+    """The share stays 0 for the first changes, and scores fade: after turns about one axis, turns
+    about new axes each time move the share off 0 (scores that never faded would keep it)."""
+    from covo_gtsam.calibration import SHARE_MIN_CHANGES, TwistChanges
+
+    rng = np.random.default_rng(5)
+    noise = np.diag([1e-4] * 3 + [1e-6] * 3)
+    tc = TwistChanges()
+    twist = np.zeros(6)
+    shares = []
+    for n in range(400):
+        if n < 150:
+            step = np.concatenate([[0.0, 0.0, rng.normal(scale=0.3)], np.zeros(3)])
+        else:
+            d = rng.normal(size=3)
+            step = np.concatenate([0.3 * d / np.linalg.norm(d), np.zeros(3)])
+        tc.add(np.eye(4), twist, twist + step, noise, noise)
+        twist = twist + step
+        shares.append(tc.share)
+    assert max(shares[:150]) == 0.0
+    assert shares[-1] >= 0.75
+    # from the start, wandering turns: 0 until SHARE_MIN_CHANGES changes are scored, then more
+    fresh, twist, early = TwistChanges(), np.zeros(6), []
+    for _ in range(30):
+        d = rng.normal(size=3)
+        step = np.concatenate([0.3 * d / np.linalg.norm(d), np.zeros(3)])
+        fresh.add(np.eye(4), twist, twist + step, noise, noise)
+        twist = twist + step
+        early.append(fresh.share)
+    assert all(s == 0.0 for s in early[:SHARE_MIN_CHANGES]) and max(early) > 0.0
