@@ -138,12 +138,10 @@ SHARE_MEMORY = 0.97
 SHARE_MIN_CHANGES = 5
 
 
-def _isotropic_mix(B: np.ndarray, share: float) -> np.ndarray:
-    """``B`` (6, 6) with ``share`` of its rotation block's trace spread evenly over the three axes."""
-    out = np.zeros((6, 6))
-    R = B[:3, :3]
-    out[:3, :3] = (1.0 - share) * R + share * np.trace(R) / 3.0 * np.eye(3)
-    return out
+def _isotropic_mix(R: np.ndarray, share) -> np.ndarray:
+    """``R`` (3, 3) with ``share`` (a number, or (K, 1, 1) for K shares at once) of its trace spread
+    evenly over the three axes."""
+    return (1.0 - share) * R + share * (np.trace(R) / 3.0) * np.eye(3)
 
 
 #: Restarts of the fit's Nelder-Mead search from its own best point, at most.
@@ -201,14 +199,14 @@ class TwistChanges:
         """6x6 basis (tangent ``[omega, v]``, (rad/s)^2 blocks) for the next pair."""
         if not self._changes:
             return np.zeros((6, 6))
-        return _isotropic_mix(self._mean, self.share)
+        out = np.zeros((6, 6))
+        out[:3, :3] = _isotropic_mix(self._mean[:3, :3], self.share)
+        return out
 
     def _score(self, b: np.ndarray, noise: np.ndarray) -> None:
         """Score each share of :data:`ISOTROPIC_SHARES` by the log-likelihood of the observed change
         ``b`` (3,) under the basis it gave before ``b`` was seen, plus the change's noise (3, 3)."""
-        M = self._mean[:3, :3]
-        a = np.asarray(ISOTROPIC_SHARES)[:, None, None]
-        C = (1.0 - a) * M + a * (np.trace(M) / 3.0) * np.eye(3) + noise
+        C = _isotropic_mix(self._mean[:3, :3], np.asarray(ISOTROPIC_SHARES)[:, None, None]) + noise
         # by eigenvalues, floored far below the largest: a basis thin across b scores very low
         # (not a singular-matrix error), however small the change's noise
         w, U = np.linalg.eigh(C)
@@ -350,19 +348,18 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
     msq = np.mean(np.einsum("ni,ni->n", errors, errors))
     term_start = [np.log(np.sqrt(0.1 * msq / max(np.mean(np.trace(bases[k], axis1=1, axis2=2)), 1e-30)))
                   for k in names]
+    search = {"maxiter": 4000 * (1 + len(names)), "xatol": 1e-6, "fatol": 1e-10}
     best = None
     for shift in (0.0, 1.0, 2.0, 3.0) if fit_correlation_factor else (0.0,):
         x0 = start + np.array([shift, -0.3 * shift, -0.3 * shift])
         x0 = np.concatenate([x0 if fit_correlation_factor else x0[1:], term_start])
-        res = minimize(cost, x0, method="Nelder-Mead",
-                       options={"maxiter": 4000 * (1 + len(names)), "xatol": 1e-6, "fatol": 1e-10})
+        res = minimize(cost, x0, method="Nelder-Mead", options=search)
         if best is None or res.fun < best.fun:
             best = res
     # Nelder-Mead's simplex can collapse short of the maximum: restart it from its own best point
     # (a fresh simplex) while that still gains
     for _ in range(FIT_RESTARTS):
-        res = minimize(cost, best.x, method="Nelder-Mead",
-                       options={"maxiter": 4000 * (1 + len(names)), "xatol": 1e-6, "fatol": 1e-10})
+        res = minimize(cost, best.x, method="Nelder-Mead", options=search)
         if not res.fun < best.fun - 1e-9:
             break
         best = res
