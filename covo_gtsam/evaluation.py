@@ -21,6 +21,7 @@ from .errors import InputError
 from .geometry import invert_pose
 from .metrics import ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .odometry import OdometryStep
+from .reference_noise import reference_jitter
 
 #: RPE intervals (frames) reported by ``covo run``.
 RPE_DELTAS = (1, 30)
@@ -135,6 +136,8 @@ class RunEvaluation:
     ate: dict | None = None
     #: :func:`consistency_statistics` of the tracked pairs' relative poses
     consistency: dict | None = None
+    #: the ground truth's own noise over the run's time span (:func:`reference_statistics`)
+    reference: dict | None = None
     not_computed: dict[str, str] = field(default_factory=dict)
     #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
@@ -187,6 +190,7 @@ class RunEvaluation:
             out.update({f"rpe_{delta}": stats for delta, stats in self.rpe.items()})
             out["ate"] = self.ate
             out.update(self.consistency or dict.fromkeys(CONSISTENCY_KEYS))
+            out["reference_jitter"] = self.reference
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
         if self.version is not None:
@@ -245,7 +249,26 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
     ev.consistency = _computed(ev.not_computed, "anees", consistency,
                                None if len(T_est) else "no tracked frame pair has ground truth at both frames")
+    samples = getattr(seq, "gt_samples", None)
+    ev.reference = _computed(
+        ev.not_computed, "reference_jitter", partial(reference_statistics, samples, steps),
+        None if samples is not None and steps else "the ground truth's own samples are not at hand (only its "
+        "poses at the frames)")
     return ev
+
+
+def reference_statistics(samples: tuple[np.ndarray, np.ndarray], steps: Sequence[OdometryStep]) -> dict:
+    """``metrics.json``'s ``reference_jitter``: the s.d. per axis of the ground truth's own noise per
+    sample (:func:`~covo_gtsam.reference_noise.reference_jitter`) within the run's time span (and
+    0.1 s either side): rotation about the camera's axes in degrees, translation along them in mm."""
+    stamps, poses = samples
+    lo, hi = min(s.timestamp for s in steps) - 0.1, max(s.timestamp for s in steps) + 0.1
+    inside = (stamps >= lo) & (stamps <= hi)
+    out = reference_jitter(stamps[inside], poses[inside])
+    if out is None:
+        raise InputError("too few evenly spaced ground-truth samples in the run's time span")
+    return {"rotation_deg": np.rad2deg(out["rotation_rad"]).tolist(),
+            "translation_mm": (1e3 * out["translation_m"]).tolist(), "samples": out["samples"]}
 
 
 #: Keys of :func:`consistency_metrics` (None when it cannot be computed).

@@ -7,9 +7,11 @@ import pytest
 
 from covo_gtsam.evaluation import CONSISTENCY_KEYS, RPE_DELTAS, RunEvaluation, evaluate_run
 
+from conftest import SAMPLE_DIR
+
 BASE_KEYS = ["sequence", "frames", "tracked_frames", "lost_frames", "lost", "restarts", "unassociated", "elapsed_s",
              "frames_per_second", "mean_pairs", "flagged_pairs", "flagged"]
-GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS]
+GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS, "reference_jitter"]
 
 
 @pytest.fixture(scope="module")
@@ -45,6 +47,31 @@ def test_statistics_summarise_the_arrays_kept(sample_run):
     assert ev.consistency["anees_rotation"] == np.mean(ev.nees_rotation)
     assert ev.tracked_frames + ev.lost_frames == ev.frames == 35
     assert set(ev.ground_truth) >= {s.timestamp for s in sample_run.steps if s.tracked}
+
+
+def test_the_reference_jitter_is_that_of_the_runs_span(sample_run):
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.reference_noise import reference_jitter
+
+    stamps, poses = TumSequence(SAMPLE_DIR).gt_samples
+    ts = [s.timestamp for s in sample_run.steps]
+    inside = (stamps >= min(ts) - 0.1) & (stamps <= max(ts) + 0.1)
+    assert 0 < inside.sum() < len(stamps)  # the run covers 35 of the sample's 40 frames
+    direct = reference_jitter(stamps[inside], poses[inside])
+    ref = sample_run.evaluation.reference
+    assert ref["samples"] == direct["samples"]
+    np.testing.assert_allclose(ref["rotation_deg"], np.rad2deg(direct["rotation_rad"]), rtol=1e-12)
+    np.testing.assert_allclose(ref["translation_mm"], 1e3 * direct["translation_m"], rtol=1e-12)
+
+
+def test_without_the_references_samples_the_jitter_says_why(sample_run):
+    from covo_gtsam.datasets.tum import TumSequence
+
+    seq = TumSequence(SAMPLE_DIR)
+    seq.gt_samples = None  # as a bag's ground truth: poses at the frames only
+    ev = evaluate_run(sample_run.steps, seq, 1.0)
+    assert ev.reference is None and "samples" in ev.not_computed["reference_jitter"]
+    assert ev.consistency is not None
 
 
 def test_figures_read_the_result_object_not_a_second_computation(sample_run, tmp_path, monkeypatch):

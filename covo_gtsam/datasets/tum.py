@@ -236,10 +236,13 @@ class TumSequence:
 
         self.groundtruth: np.ndarray | None = None
         self.gt_valid = np.zeros(len(self.timestamps), bool)
+        #: the ground truth's own samples ``(stamps (M,), T_world,cam (M, 4, 4))``, or None
+        self.gt_samples: tuple[np.ndarray, np.ndarray] | None = None
         gt_file = self.path / "groundtruth.txt"
         if gt_file.is_file():
             stamps, poses = load_tum_trajectory(gt_file)
             if stamps.size:
+                self.gt_samples = (stamps, poses)
                 self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps, max_gap)
                 G = self.groundtruth
                 usable = np.isfinite(G).all(axis=(1, 2)) & (np.abs(G[:, :3, 3]).max(axis=1) <= MAX_GT_COORDINATE)

@@ -1,0 +1,72 @@
+"""The ground truth's own noise, measured from its samples alone.
+
+A motion-capture reference jitters from sample to sample; that jitter enters every error measured
+against it, the NEES included. :func:`reference_jitter` measures it without any odometry: each
+sample is predicted from its ``neighbours`` samples on either side by a quadratic in time (the
+camera's smooth motion), and the prediction's residual is the sample's noise plus the
+prediction's. For white noise of s.d. ``sigma`` per sample the residual's variance is
+``sigma^2 (1 + v)``, with ``v = |w|^2`` from the prediction's weights ``w``; the median of the
+residuals squared over ``1 + v``, divided by the median of chi2(1), estimates ``sigma^2`` per axis
+(robust to the odd spike of the reference and to fast changes of the motion).
+
+Rotation residuals are ``Log(R_i^T R_pred)`` about the sample's own axes (for TUM ground truth the
+colour camera's: x right, y down, z forward), radians; translation residuals are rotated into the
+same axes, metres. docs/derivation.md ("The reference's own noise") has the measurements.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+from .metrics import se3_log
+
+#: median of chi2 with one degree of freedom
+CHI2_1_MEDIAN = 0.454936423119572
+
+
+def reference_jitter(stamps: np.ndarray, poses: np.ndarray, neighbours: int = 3) -> dict | None:
+    """Per-axis s.d. of a reference trajectory's sample noise: ``{"rotation_rad": (3,),
+    "translation_m": (3,), "samples": n}``, or None with fewer than ``4 neighbours + 1`` evenly
+    spaced samples.
+
+    ``stamps`` (N,) in s, ``poses`` (N, 4, 4) T_world,body at them (e.g. ``groundtruth.txt``).
+    A sample is used when its ``2 neighbours`` neighbours lie within ``neighbours + 0.5`` median
+    sample intervals of it on each side (no gap)."""
+    t = np.asarray(stamps, dtype=float).reshape(-1)
+    P = np.asarray(poses, dtype=float)
+    if P.shape != (t.shape[0], 4, 4):
+        raise InputError(f"need poses ({t.shape[0]}, 4, 4) for {t.shape[0]} stamps, got {P.shape}")
+    k = int(neighbours)
+    if k < 2:
+        raise InputError(f"neighbours must be at least 2 (a quadratic through them), got {neighbours}")
+    finite = np.isfinite(t) & np.isfinite(P).all(axis=(1, 2))
+    t, P = t[finite], P[finite]
+    if t.shape[0] < 4 * k + 1:
+        return None
+    dt = float(np.median(np.diff(t)))
+    if not dt > 0:
+        return None
+    offsets = np.r_[np.arange(-k, 0), np.arange(1, k + 1)]  # (2k,)
+    centre = np.arange(k, t.shape[0] - k)
+    tt = t[centre[:, None] + offsets] - t[centre, None]  # (M, 2k) s
+    ok = (np.abs(tt) <= (k + 0.5) * dt).all(axis=1) & (np.sign(tt) == np.sign(offsets)).all(axis=1)
+    centre, tt = centre[ok], tt[ok] / dt
+    if centre.size < 2 * k:
+        return None
+    A = np.stack([np.ones_like(tt), tt, tt**2], axis=2)  # (M, 2k, 3)
+    # weights of the neighbours in the fitted quadratic's value at the sample's own time
+    w = (A @ np.linalg.inv(A.transpose(0, 2, 1) @ A))[:, :, 0]  # (M, 2k)
+    scale = 1.0 + (w**2).sum(axis=1)
+    Pi = P[centre]
+    Rt = Pi[:, :3, :3].transpose(0, 2, 1)
+    rel = np.einsum("mij,mnjk->mnik", np.linalg.inv(Pi), P[centre[:, None] + offsets])  # T_i^-1 T_j
+    rot = se3_log(rel.reshape(-1, 4, 4))[:, :3].reshape(len(centre), 2 * k, 3)
+    r_rot = np.einsum("mn,mni->mi", w, rot)  # the sample itself is the identity in its own axes
+    r_tr = np.einsum("mij,mj->mi", Rt, np.einsum("mn,mni->mi", w, P[centre[:, None] + offsets, :3, 3])
+                     - Pi[:, :3, 3])
+
+    def sd(r: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.median(r**2 / scale[:, None], axis=0) / CHI2_1_MEDIAN)
+
+    return {"rotation_rad": sd(r_rot), "translation_m": sd(r_tr), "samples": int(centre.size)}
