@@ -183,6 +183,20 @@ def delay_table(data: Path, rpy: dict, desk: dict) -> list[str]:
     return lines + [""]
 
 
+def fit_half(p: dict, mask: np.ndarray) -> tuple:
+    """The default model fitted on the pairs of ``mask`` (those ``covo calibrate`` fits) and
+    ``"ANEES t / r | log-likelihood"`` on the other pairs."""
+    from covo_gtsam.calibration import log_likelihood
+
+    train = subset(p, mask & p["fit_ok"])
+    fit = fit_sensor_terms(train["err"], train["cov"], False,
+                           bases={n: train["bases"][n] for n in DEFAULT_TERMS}, fixed=train["fixed"])
+    held = subset(p, ~mask)
+    covs = model_covs(fit, held)
+    nt, nr = anees_cells(held["err"], covs)
+    return fit, f"{nt.mean():.2f} / {nr.mean():.2f} | {log_likelihood(held['err'], covs):.2f}"
+
+
 def window_table(data: Path) -> list[str]:
     """The default model fitted with the latency and rolling-shutter terms' twist history over 3, 10
     (the default) and 30 pairs: fit on one half of fr1_rpy, check on the other."""
@@ -192,22 +206,15 @@ def window_table(data: Path) -> list[str]:
              "of fr1_rpy and checked on the other, per history length.", "",
              "| history (pairs) | fitted on | latency (ms) | rolling shutter | log-likelihood in sample | "
              "checked on | ANEES t / r | log-likelihood held out |", "|---|---|---|---|---|---|---|---|"]
-    from covo_gtsam.calibration import log_likelihood
 
     for window in (3, 10, 30):
         rpy = per_point_pairs(data, RPY, twist_history=window)
         halves = {"A": rpy["end"] <= 119, "B": rpy["end"] >= 120}
         for name, m in halves.items():
-            train = subset(rpy, m & rpy["fit_ok"])
-            fit = fit_sensor_terms(train["err"], train["cov"], False,
-                                   bases={n: train["bases"][n] for n in DEFAULT_TERMS}, fixed=train["fixed"])
-            held = subset(rpy, ~m)
-            covs = model_covs(fit, held)
-            nt, nr = anees_cells(held["err"], covs)
-            other = "B" if name == "A" else "A"
+            fit, held = fit_half(rpy, m)
             lines.append(f"| {window} | {name} | {1e3 * fit.sigmas['latency']:.2f} | "
-                         f"{fit.sigmas['rolling_shutter']:.2f} | {fit.log_likelihood:.2f} | {other} | "
-                         f"{nt.mean():.2f} / {nr.mean():.2f} | {log_likelihood(held['err'], covs):.2f} |")
+                         f"{fit.sigmas['rolling_shutter']:.2f} | {fit.log_likelihood:.2f} | "
+                         f"{'B' if name == 'A' else 'A'} | {held} |")
     return lines + [""]
 
 
@@ -343,7 +350,6 @@ def reference_covariances(seq: TumSequence, end: np.ndarray, k: int = 1) -> tupl
 def reference_table(data: Path) -> list[str]:
     """The ground truth's own noise, and the default model fitted with it as a known term: what
     the frame term is once the reference's jitter is taken out of it."""
-    from covo_gtsam.calibration import log_likelihood
 
     lines = ["## The ground truth's own noise", "",
              "The freiburg1 reference jitters from sample to sample (`covo_gtsam.reference_noise`, from the "
@@ -368,16 +374,9 @@ def reference_table(data: Path) -> list[str]:
     halves = {"A": rpy["end"] <= 119, "B": rpy["end"] >= 120}
     for name, m in halves.items():
         for label, extra in (("in the frame term", 0.0 * ref), ("a known term", ref)):
-            train = subset({**rpy, "fixed": rpy["fixed"] + extra}, m & rpy["fit_ok"])
-            fit = fit_sensor_terms(train["err"], train["cov"], False,
-                                   bases={n: train["bases"][n] for n in DEFAULT_TERMS}, fixed=train["fixed"])
-            held = subset({**rpy, "fixed": rpy["fixed"] + extra}, ~m)
-            covs = model_covs(fit, held)
-            nt, nr = anees_cells(held["err"], covs)
-            other = "B" if name == "A" else "A"
+            fit, held = fit_half({**rpy, "fixed": rpy["fixed"] + extra}, m)
             lines.append(f"| {name} | {label} | {fit.frame_sigma_rot_deg:.3f} | {1e3 * fit.sigmas['latency']:.2f} | "
-                         f"{fit.log_likelihood:.2f} | {other} | {nt.mean():.2f} / {nr.mean():.2f} | "
-                         f"{log_likelihood(held['err'], covs):.2f} |")
+                         f"{fit.log_likelihood:.2f} | {'B' if name == 'A' else 'A'} | {held} |")
     return lines + [""]
 
 
