@@ -252,8 +252,8 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
     samples = getattr(seq, "gt_samples", None)
     ev.reference = _computed(
         ev.not_computed, "reference_jitter", partial(reference_statistics, samples, steps),
-        None if samples is not None and steps else "the ground truth's own samples are not at hand (only its "
-        "poses at the frames)")
+        "no frame was processed" if not steps else None if samples is not None else
+        "the ground truth's own samples are not at hand (only its poses at the frames)")
     return ev
 
 
@@ -263,12 +263,16 @@ def reference_statistics(samples: tuple[np.ndarray, np.ndarray], steps: Sequence
     0.1 s either side): rotation about the camera's axes in degrees, translation along them in mm."""
     stamps, poses = samples
     lo, hi = min(s.timestamp for s in steps) - 0.1, max(s.timestamp for s in steps) + 0.1
-    inside = (stamps >= lo) & (stamps <= hi)
+    with np.errstate(invalid="ignore"):  # NaN rows are dropped here too
+        usable = np.abs(poses[:, :3, 3]).max(axis=1) <= MAX_GT_COORDINATE
+    inside = (stamps >= lo) & (stamps <= hi) & usable
     out = reference_jitter(stamps[inside], poses[inside])
     if out is None:
         raise InputError("too few evenly spaced ground-truth samples in the run's time span")
-    return {"rotation_deg": np.rad2deg(out["rotation_rad"]).tolist(),
-            "translation_mm": (1e3 * out["translation_m"]).tolist(), "samples": out["samples"]}
+    rot, trans = np.rad2deg(out["rotation_rad"]), 1e3 * out["translation_m"]
+    if not (np.all(np.isfinite(rot)) and np.all(np.isfinite(trans))):
+        raise InputError("not finite (ground truth too large for double precision)")
+    return {"rotation_deg": rot.tolist(), "translation_mm": trans.tolist(), "samples": out["samples"]}
 
 
 #: Keys of :func:`consistency_metrics` (None when it cannot be computed).

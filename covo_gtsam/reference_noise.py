@@ -31,8 +31,9 @@ def reference_jitter(stamps: np.ndarray, poses: np.ndarray, neighbours: int = 3)
     spaced samples.
 
     ``stamps`` (N,) in s, ``poses`` (N, 4, 4) T_world,body at them (e.g. ``groundtruth.txt``).
-    A sample is used when its ``2 neighbours`` neighbours lie within ``neighbours + 0.5`` median
-    sample intervals of it on each side (no gap)."""
+    The samples are taken in time order (non-finite ones dropped). A sample is used when its
+    ``2 neighbours`` neighbours lie within ``neighbours + 0.5`` median sample intervals of it on each
+    side (no gap) at distinct times."""
     t = np.asarray(stamps, dtype=float).reshape(-1)
     P = np.asarray(poses, dtype=float)
     if P.shape != (t.shape[0], 4, 4):
@@ -41,7 +42,8 @@ def reference_jitter(stamps: np.ndarray, poses: np.ndarray, neighbours: int = 3)
     if k < 2:
         raise InputError(f"neighbours must be at least 2 (a quadratic through them), got {neighbours}")
     finite = np.isfinite(t) & np.isfinite(P).all(axis=(1, 2))
-    t, P = t[finite], P[finite]
+    order = np.argsort(t[finite], kind="stable")
+    t, P = t[finite][order], P[finite][order]
     if t.shape[0] < 4 * k + 1:
         return None
     dt = float(np.median(np.diff(t)))
@@ -50,7 +52,9 @@ def reference_jitter(stamps: np.ndarray, poses: np.ndarray, neighbours: int = 3)
     offsets = np.r_[np.arange(-k, 0), np.arange(1, k + 1)]  # (2k,)
     centre = np.arange(k, t.shape[0] - k)
     tt = t[centre[:, None] + offsets] - t[centre, None]  # (M, 2k) s
-    ok = (np.abs(tt) <= (k + 0.5) * dt).all(axis=1) & (np.sign(tt) == np.sign(offsets)).all(axis=1)
+    # within reach on both sides, no repeated stamp (a quadratic needs three distinct times)
+    ok = ((np.abs(tt) <= (k + 0.5) * dt).all(axis=1) & (np.sign(tt) == np.sign(offsets)).all(axis=1)
+          & (np.diff(tt, axis=1) > 0).all(axis=1))
     centre, tt = centre[ok], tt[ok] / dt
     if centre.size < 2 * k:
         return None

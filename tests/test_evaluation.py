@@ -72,6 +72,13 @@ def test_without_the_references_samples_the_jitter_says_why(sample_run):
     ev = evaluate_run(sample_run.steps, seq, 1.0)
     assert ev.reference is None and "samples" in ev.not_computed["reference_jitter"]
     assert ev.consistency is not None
+    stamps, poses = TumSequence(SAMPLE_DIR).gt_samples
+    far = poses.copy()
+    far[:, :3, 3] += 1e170  # beyond any room: dropped, as the ground truth at the frames is
+    seq.gt_samples = (stamps, far)
+    ev = evaluate_run(sample_run.steps, seq, 1.0)
+    assert ev.reference is None and "too few" in ev.not_computed["reference_jitter"]
+    assert evaluate_run([], seq, 1.0).not_computed["reference_jitter"] == "no frame was processed"
 
 
 def test_figures_read_the_result_object_not_a_second_computation(sample_run, tmp_path, monkeypatch):
