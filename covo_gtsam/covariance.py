@@ -34,7 +34,7 @@ import gtsam
 import numpy as np
 
 from .errors import InputError
-from .geometry import matrix_to_quat, skew
+from .geometry import adjoint, invert_pose, matrix_to_quat, skew
 
 def check_matrix(cov, name: str = "covariance", size: int = 6) -> np.ndarray:
     """``cov`` as a finite float (size, size) array; :class:`InputError` otherwise."""
@@ -132,3 +132,23 @@ def compose_covariance(T_a: gtsam.Pose3, cov_a: np.ndarray, T_b: gtsam.Pose3, co
     _check_pose(T_a)
     A = _check_pose(T_b).inverse().AdjointMap()
     return A @ cov_a @ A.T + cov_b
+
+
+def compose_chains(T: np.ndarray, cov: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (M, 4, 4) and first-order covariances (M, 6, 6) of every chain ``T_i T_i+1 ... T_i+length-1``
+    of ``length`` consecutive relative poses ``T`` (N, 4, 4) with covariances ``cov`` (N, 6, 6),
+    the poses independent (as between factors are): :func:`compose_covariance` applied along each
+    chain, all chains at once. ``M = N - length + 1`` (0 when ``N < length``)."""
+    T, cov = np.asarray(T, dtype=float), np.asarray(cov, dtype=float)
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or cov.shape != (T.shape[0], 6, 6) or int(length) < 1:
+        raise InputError(f"need poses (N, 4, 4), covariances (N, 6, 6) and a length >= 1, got {T.shape}, "
+                         f"{cov.shape}, {length!r}")
+    m = T.shape[0] - int(length) + 1
+    if m <= 0:
+        return np.empty((0, 4, 4)), np.empty((0, 6, 6))
+    T_chain, C_chain = T[:m].copy(), cov[:m].copy()
+    for k in range(1, int(length)):
+        A = adjoint(invert_pose(T[k:k + m]))
+        C_chain = A @ C_chain @ np.swapaxes(A, 1, 2) + cov[k:k + m]
+        T_chain = T_chain @ T[k:k + m]
+    return T_chain, C_chain

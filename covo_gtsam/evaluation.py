@@ -16,6 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from .chi2 import CHI2_3_975
+from .covariance import compose_chains
 from .datasets.tum import MAX_GT_COORDINATE
 from .errors import InputError
 from .geometry import invert_pose
@@ -25,6 +26,8 @@ from .reference_noise import reference_jitter
 
 #: RPE intervals (frames) reported by ``covo run``.
 RPE_DELTAS = (1, 30)
+#: Pairs per chain of ``metrics.json``'s ``chains`` (about a second of a 30 Hz camera).
+CHAIN_PAIRS = 30
 
 
 def consistency_metrics(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> dict:
@@ -58,6 +61,42 @@ def relative_ground_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float
         true.append(invert_pose(g_ref) @ g_cur)
         covs.append(s.covariance)
     return np.array(est).reshape(-1, 4, 4), np.array(true).reshape(-1, 4, 4), np.array(covs).reshape(-1, 6, 6)
+
+
+def chain_statistics(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
+                     length: int = CHAIN_PAIRS) -> dict:
+    """The covariance over chains of ``length`` consecutive tracked pairs, composed as independent
+    between factors compose them (:func:`~covo_gtsam.covariance.compose_chains`), against the
+    ground truth between the chain's ends: :func:`consistency_statistics` of every such chain
+    (``nees_pairs``: the chains) and ``pairs_per_chain``. A chain runs through lost frames (the next
+    pair starts at the last tracked frame) but not across a restart or a frame without ground
+    truth. :class:`InputError` when no chain is that long."""
+    runs, run = [], []
+    for s in steps:
+        if s.status != "tracked":
+            continue
+        if s.ref_timestamp not in stamp_to_gt or s.timestamp not in stamp_to_gt or (
+                run and run[-1].timestamp != s.ref_timestamp):
+            runs.append(run)
+            run = []
+        if s.ref_timestamp in stamp_to_gt and s.timestamp in stamp_to_gt:
+            run.append(s)
+    runs.append(run)
+    nees_rot, nees_tr = [], []
+    for run in runs:
+        if len(run) < length:
+            continue
+        T_chain, C_chain = compose_chains(np.array([s.relative.matrix() for s in run]),
+                                          np.array([s.covariance for s in run]), length)
+        starts = np.array([stamp_to_gt[s.ref_timestamp] for s in run[:len(run) - length + 1]])
+        ends = np.array([stamp_to_gt[s.timestamp] for s in run[length - 1:]])
+        r, t = relative_pose_nees(T_chain, invert_pose(starts) @ ends, C_chain)
+        nees_rot.append(r)
+        nees_tr.append(t)
+    if not nees_rot:
+        raise InputError(f"no {length} consecutive tracked pairs with ground truth")
+    return {"pairs_per_chain": int(length),
+            **consistency_statistics(np.concatenate(nees_rot), np.concatenate(nees_tr))}
 
 
 def tracked_segments(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]):
@@ -136,6 +175,8 @@ class RunEvaluation:
     ate: dict | None = None
     #: :func:`consistency_statistics` of the tracked pairs' relative poses
     consistency: dict | None = None
+    #: :func:`chain_statistics` over chains of :data:`CHAIN_PAIRS` pairs
+    chains: dict | None = None
     #: the ground truth's own noise over the run's time span (:func:`reference_statistics`)
     reference: dict | None = None
     not_computed: dict[str, str] = field(default_factory=dict)
@@ -190,6 +231,7 @@ class RunEvaluation:
             out.update({f"rpe_{delta}": stats for delta, stats in self.rpe.items()})
             out["ate"] = self.ate
             out.update(self.consistency or dict.fromkeys(CONSISTENCY_KEYS))
+            out["chains"] = self.chains
             out["reference_jitter"] = self.reference
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
@@ -249,6 +291,8 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
     ev.consistency = _computed(ev.not_computed, "anees", consistency,
                                None if len(T_est) else "no tracked frame pair has ground truth at both frames")
+    ev.chains = _computed(ev.not_computed, "chains", partial(chain_statistics, steps, gt),
+                          None if len(T_est) else "no tracked frame pair has ground truth at both frames")
     samples = getattr(seq, "gt_samples", None)
     ev.reference = _computed(
         ev.not_computed, "reference_jitter", partial(reference_statistics, samples, steps),

@@ -130,6 +130,18 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return make_pose(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
 
 
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """Adjoints (..., 6, 6) of 4x4 rigid transforms (..., 4, 4) in GTSAM's tangent order
+    ``[omega, v]``: ``[[R, 0], [[t]x R, R]]`` (``T Exp(xi) T^-1 = Exp(Ad(T) xi)``)."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    out = np.zeros(T.shape[:-2] + (6, 6))
+    out[..., :3, :3] = R
+    out[..., 3:, 3:] = R
+    out[..., 3:, :3] = skew(T[..., :3, 3]) @ R
+    return out
+
+
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Rotation angle in radians of rotation matrices (..., 3, 3), in [0, pi]."""
     R = np.asarray(R, dtype=float)

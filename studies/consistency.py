@@ -357,14 +357,12 @@ def depth_scale_table(data: Path) -> list[str]:
 def chain_tables(pairs: dict) -> list[str]:
     """ANEES of relative poses over windows of consecutive pairs, with the covariance composed along
     the chain as for independent pairs (what a pose graph of between factors assumes)."""
-    import gtsam
-
-    from covo_gtsam.covariance import compose_covariance
+    from covo_gtsam.covariance import compose_chains
     from covo_gtsam.metrics import nees, relative_pose_tangent_errors
 
     lines = ["## Chains of pairs", "",
              "The default's relative poses composed over windows of consecutive pairs, with the covariance "
-             "composed to first order as if the pairs were independent (`covo_gtsam.covariance.compose_covariance`, "
+             "composed to first order as if the pairs were independent (`covo_gtsam.covariance.compose_chains`, "
              "as a pose graph of between factors does). ANEES translation / rotation; share above 9.35; "
              "lag-1 autocorrelation of the per-pair errors per axis (x, y, z).", "",
              "| sequence | " + " | ".join(f"{w} pairs" for w in CHAIN_WINDOWS) + " | lag-1 autocorrelation t / r |",
@@ -374,15 +372,10 @@ def chain_tables(pairs: dict) -> list[str]:
             continue
         cells = []
         for w in CHAIN_WINDOWS:
-            est, true, covs = [], [], []
-            for s in range(len(p["err"]) - w + 1):
-                T, C, Tt = gtsam.Pose3(), np.zeros((6, 6)), np.eye(4)
-                for j in range(s, s + w):
-                    Tj = gtsam.Pose3(p["T_est"][j])
-                    C = compose_covariance(T, C, Tj, p["cov"][j])
-                    T, Tt = T.compose(Tj), Tt @ p["T_true"][j]
-                est.append(T.matrix()), true.append(Tt), covs.append(C)
-            xi, covs = relative_pose_tangent_errors(np.array(est), np.array(true)), np.array(covs)
+            est, covs = compose_chains(p["T_est"], p["cov"], w)
+            true = np.array([np.linalg.multi_dot(p["T_true"][s:s + w]) if w > 1 else p["T_true"][s]
+                             for s in range(len(est))])
+            xi = relative_pose_tangent_errors(est, true)
             nt, nr = nees(xi[:, 3:], covs[:, 3:, 3:]), nees(xi[:, :3], covs[:, :3, :3])
             cells.append(f"{nt.mean():.2f} / {nr.mean():.2f}; {100 * np.mean(nt > 9.35):.0f} % / "
                          f"{100 * np.mean(nr > 9.35):.0f} %")

@@ -29,7 +29,7 @@ from covo_gtsam.calibration import (  # noqa: E402
     fit_sensor_terms,
 )
 from covo_gtsam.config import OdometryConfig  # noqa: E402
-from covo_gtsam.covariance import compose_covariance  # noqa: E402
+from covo_gtsam.covariance import compose_chains, compose_covariance  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors, se3_log  # noqa: E402
@@ -82,23 +82,22 @@ def anees_cells(err: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def chain_anees(p: dict, covs: np.ndarray, w: int = CHAIN) -> tuple[float, float]:
-    """ANEES t / r of windows of ``w`` consecutive pairs (covariances composed as independent)."""
-    import gtsam
-
-    est, true, cc = [], [], []
-    for s in range(len(p["err"]) - w + 1):
-        if p["end"][s + w - 1] - p["end"][s] != w - 1:
-            continue  # not consecutive
-        T, C, Tt = gtsam.Pose3(), np.zeros((6, 6)), np.eye(4)
-        for j in range(s, s + w):
-            Tj = gtsam.Pose3(p["T_est"][j])
-            C = compose_covariance(T, C, Tj, covs[j])
-            T, Tt = T.compose(Tj), Tt @ p["T_true"][j]
-        est.append(T.matrix()), true.append(Tt), cc.append(C)
-    if not est:
+    """ANEES t / r of windows of ``w`` consecutive pairs (covariances composed as independent,
+    :func:`covo_gtsam.covariance.compose_chains`)."""
+    breaks = np.flatnonzero(np.diff(p["end"]) != 1) + 1  # runs of pairs ending in consecutive frames
+    nt, nr = [], []
+    for run in np.split(np.arange(len(p["end"])), breaks):
+        T, C = compose_chains(p["T_est"][run], covs[run], w)
+        if not len(T):
+            continue
+        true = np.array([np.linalg.multi_dot(p["T_true"][run[s:s + w]]) if w > 1 else p["T_true"][run[s]]
+                         for s in range(len(T))])
+        t, r = anees_cells(relative_pose_tangent_errors(T, true), C)
+        nt.append(t)
+        nr.append(r)
+    if not nt:
         return float("nan"), float("nan")
-    nt, nr = anees_cells(relative_pose_tangent_errors(np.array(est), np.array(true)), np.array(cc))
-    return float(nt.mean()), float(nr.mean())
+    return float(np.concatenate(nt).mean()), float(np.concatenate(nr).mean())
 
 
 def check(fit, p: dict) -> str:

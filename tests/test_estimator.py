@@ -6,7 +6,14 @@ import gtsam
 import numpy as np
 import pytest
 
-from covo_gtsam.covariance import compose_covariance, ros_to_tangent, tangent_to_ros, tangent_to_tq, tq_to_tangent
+from covo_gtsam.covariance import (
+    compose_chains,
+    compose_covariance,
+    ros_to_tangent,
+    tangent_to_ros,
+    tangent_to_tq,
+    tq_to_tangent,
+)
 from covo_gtsam.errors import CovoError, DegenerateGeometryError, EstimationError, InputError, InsufficientPairsError
 from covo_gtsam.estimator import POSE_KEY, estimate_relative_pose
 from covo_gtsam.factors import transfer_factor
@@ -128,6 +135,36 @@ def test_compose_covariance_monte_carlo():
     e = np.array([gtsam.Pose3.Logmap(T.between(Ta.retract(a).compose(Tb.retract(b)))) for a, b in zip(xa, xb)])
     emp = e.T @ e / len(e)
     np.testing.assert_allclose(emp, pred, atol=0.06 * np.abs(pred).max())
+
+
+def test_chains_of_poses_match_a_monte_carlo_and_pairwise_composition():
+    """compose_chains: every window of 4 of 6 relative poses, against sampled perturbed chains (the
+    poses' errors independent) and against compose_covariance (GTSAM's adjoint) along each chain."""
+    rng = np.random.default_rng(7)
+    T = np.array([gtsam.Pose3.Expmap(rng.normal(scale=[0.3] * 3 + [0.5] * 3)).matrix() for _ in range(6)])
+    C = np.array([np.diag(rng.uniform(0.5, 3.0, 6)) * 1e-4 for _ in range(6)])
+    Tc, Cc = compose_chains(T, C, 4)
+    assert Tc.shape == (3, 4, 4) and Cc.shape == (3, 6, 6)
+    for s in range(3):
+        P, PC = gtsam.Pose3(T[s]), C[s]
+        for k in range(s + 1, s + 4):
+            PC = compose_covariance(P, PC, gtsam.Pose3(T[k]), C[k])
+            P = P.compose(gtsam.Pose3(T[k]))
+        np.testing.assert_allclose(Tc[s], P.matrix(), atol=1e-12)
+        np.testing.assert_allclose(Cc[s], PC, rtol=1e-10, atol=1e-18)
+    xs = [rng.multivariate_normal(np.zeros(6), C[k], 20000) for k in range(4)]
+    chain = gtsam.Pose3(Tc[0])
+    e = []
+    for draw in zip(*xs):
+        P = gtsam.Pose3()
+        for k, x in enumerate(draw):
+            P = P.compose(gtsam.Pose3(T[k]).retract(x))
+        e.append(gtsam.Pose3.Logmap(chain.between(P)))
+    e = np.array(e)
+    np.testing.assert_allclose(e.T @ e / len(e), Cc[0], atol=0.06 * np.abs(Cc[0]).max())
+    assert compose_chains(T, C, 7)[0].shape == (0, 4, 4)
+    with pytest.raises(InputError):
+        compose_chains(T, C[:-1], 2)
 
 
 def test_scale_is_linear():

@@ -5,13 +5,15 @@ import json
 import numpy as np
 import pytest
 
+from covo_gtsam.errors import InputError
 from covo_gtsam.evaluation import CONSISTENCY_KEYS, RPE_DELTAS, RunEvaluation, evaluate_run
 
 from conftest import SAMPLE_DIR
 
 BASE_KEYS = ["sequence", "frames", "tracked_frames", "lost_frames", "lost", "restarts", "unassociated", "elapsed_s",
              "frames_per_second", "mean_pairs", "flagged_pairs", "flagged"]
-GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS, "reference_jitter"]
+GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS, "chains",
+           "reference_jitter"]
 
 
 @pytest.fixture(scope="module")
@@ -113,3 +115,62 @@ def test_without_ground_truth_only_the_counts():
     assert list(d) == BASE_KEYS
     assert d["frames_per_second"] == 1.0 and d["lost"] == [{"timestamp": 0.1, "reason": "no depth"}]
     assert evaluate_run(steps, SimpleNamespace(name="x", groundtruth=None), 0.0).frames_per_second is None
+
+
+def _synthetic_run(n: int, persistent: bool, seed: int = 0):
+    """Steps of a run whose pairs' errors are drawn from their covariances: independent, or the same
+    error in every pair (a persistent one), and the ground truth they are errors against."""
+    import gtsam
+
+    from covo_gtsam.odometry import OdometryStep
+
+    rng = np.random.default_rng(seed)
+    C = np.diag([1e-5] * 3 + [4e-6] * 3)
+    same = rng.multivariate_normal(np.zeros(6), C)
+    gt, steps, truth = {0.0: np.eye(4)}, [OdometryStep(0.0, "first")], gtsam.Pose3()
+    for k in range(1, n + 1):
+        motion = gtsam.Pose3.Expmap(np.r_[rng.normal(scale=0.03, size=3), rng.normal(scale=0.01, size=3)])
+        truth = truth.compose(motion)
+        gt[float(k)] = truth.matrix()
+        err = same if persistent else rng.multivariate_normal(np.zeros(6), C)
+        # T_true = T_est Exp(err): the estimate is the truth moved by -err
+        steps.append(OdometryStep(float(k), "tracked", ref_timestamp=float(k - 1),
+                                  relative=motion.compose(gtsam.Pose3.Expmap(-err)), covariance=C))
+    return steps, gt
+
+
+def test_chains_are_consistent_for_independent_errors_and_not_for_persistent_ones():
+    from covo_gtsam.evaluation import chain_statistics
+
+    # 3000 pairs: 100 disjoint chains, so the chains' ANEES is 3 within about 0.25 (one s.d.)
+    steps, gt = _synthetic_run(3000, persistent=False)
+    out = chain_statistics(steps, gt, 30)
+    assert out["pairs_per_chain"] == 30 and out["nees_pairs"] == 2971
+    assert 2.4 < out["anees_translation"] < 3.6 and 2.4 < out["anees_rotation"] < 3.6
+    single = chain_statistics(steps, gt, 1)
+    assert 2.8 < single["anees_translation"] < 3.2 and single["nees_pairs"] == 3000
+    # one error in every pair: a chain's error is about 30 times a pair's, its covariance 30 times
+    steps, gt = _synthetic_run(600, persistent=True)
+    chains, pairs = chain_statistics(steps, gt, 30), chain_statistics(steps, gt, 1)
+    for key in ("anees_translation", "anees_rotation"):
+        assert 25 < chains[key] / pairs[key] < 32
+
+
+def test_chains_run_through_lost_frames_but_not_across_restarts_or_missing_truth():
+    from covo_gtsam.evaluation import chain_statistics
+    from covo_gtsam.odometry import OdometryStep
+
+    steps, gt = _synthetic_run(40, persistent=False)
+    assert chain_statistics(steps, gt, 30)["nees_pairs"] == 11
+    # frame 10 lost: the pair to frame 11 starts at frame 9 (here: the same motion, composed)
+    lost = steps[:10] + [OdometryStep(10.0, "lost", reason="test")] + steps[11:]
+    lost[11] = OdometryStep(11.0, "tracked", ref_timestamp=9.0, relative=steps[10].relative.compose(steps[11].relative),
+                            covariance=steps[11].covariance)
+    assert chain_statistics(lost, gt, 30)["nees_pairs"] == 10
+    restarted = steps[:20] + [OdometryStep(20.0, "restart", reason="test")] + steps[21:]
+    with pytest.raises(InputError, match="no 30 consecutive"):
+        chain_statistics(restarted, gt, 30)
+    no_truth = {t: g for t, g in gt.items() if t != 25.0}
+    with pytest.raises(InputError):
+        chain_statistics(steps, no_truth, 30)
+    assert chain_statistics(steps, no_truth, 20)["nees_pairs"] == 5  # pairs ending in frames 1-24 only

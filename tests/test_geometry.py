@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from covo_gtsam.datasets.tum import interpolate_poses
-from covo_gtsam.geometry import make_pose, matrix_to_quat, pose_to_tum, quat_to_matrix
+from covo_gtsam.geometry import adjoint, make_pose, matrix_to_quat, pose_to_tum, quat_to_matrix
 from covo_gtsam.io import load_tum_trajectory, write_tum_trajectory
 
 #: 120 deg about (1, 2, 3)/|.|: every quaternion component differs, so any swap of order shows
@@ -80,3 +80,11 @@ def test_slerp_matches_gtsam(s):
         # slerp takes the shorter arc, which gtsam's geodesic also does below 180 deg apart
         if np.arccos(np.clip((np.trace(R[k].T @ R[k + 1]) - 1) / 2, -1, 1)) < np.pi - 1e-3:
             np.testing.assert_allclose(out[k, :3, :3], ref, atol=1e-12)
+
+
+def test_adjoint_is_gtsams():
+    rng = np.random.default_rng(3)
+    poses = [gtsam.Pose3.Expmap(rng.normal(scale=[1.0] * 3 + [2.0] * 3)) for _ in range(5)]
+    batch = adjoint(np.array([P.matrix() for P in poses]))
+    for P, A in zip(poses, batch):
+        np.testing.assert_allclose(A, P.AdjointMap(), atol=1e-12)
