@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import math
 import os
 import sys
 import warnings
@@ -224,13 +225,24 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     seq = _sequence(args)
     _check_config_fits(args, config, seq)
     out = check_output_dir(args.out)
+    reference_sd = None
+    if args.reference_jitter:
+        from .reference_noise import reference_jitter
+
+        jitter = None if seq.gt_samples is None else reference_jitter(*seq.gt_samples)
+        if jitter is None:
+            raise CovoError(f"{seq.path}: --reference-jitter needs the ground truth's own samples, evenly spaced "
+                            "(groundtruth.txt with at least 13 of them)")
+        reference_sd = jitter["rotation_rad"]
     with _lock_outputs(out, ["calibration.json"]):
         fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
-                                         progress=not args.quiet)
+                                         progress=not args.quiet, reference_sd=reference_sd)
         summary = {"sequence": seq.name, "pairs": fit.pairs, **fit.config_values(),
                    "log_likelihood_per_pair": fit.log_likelihood,
                    "per_point_model_anees": [result.metrics.get("anees_translation"),
-                                             result.metrics.get("anees_rotation")]}
+                                             result.metrics.get("anees_rotation")],
+                   "reference_jitter_held_deg": (None if reference_sd is None
+                                                 else [math.degrees(float(x)) for x in reference_sd])}
         write_json(out / "calibration.json", summary)
         anees_t, anees_r = summary["per_point_model_anees"]
         anees = (f"ANEES t {anees_t:.2f} r {anees_r:.2f} (3 = consistent)"

@@ -243,6 +243,10 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
                      help="only the first N frames (at least 11; default: all)")
     cal.add_argument("--config", metavar="FILE",
                      help="TOML or JSON settings for the run; its sensor terms are ignored (see README)")
+    cal.add_argument("--reference-jitter", action="store_true",
+                     help="hold the ground truth's own rotation jitter (measured from its samples; reference_jitter "
+                     "in metrics.json) as a known term: the fitted terms then describe the camera alone, not the "
+                     "camera against this ground truth (default: both in the fitted terms, as the defaults were fitted)")
     _output_arguments(cal, plots=False)
     cal.set_defaults(func=handlers["calibrate"])
     return parser

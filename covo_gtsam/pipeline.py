@@ -362,6 +362,7 @@ def calibrate_sequence(
     progress: bool = True,
     terms=None,
     fit_correlation_factor: bool = False,
+    reference_sd: np.ndarray | None = None,
 ):
     """Fit the sensor terms (:func:`covo_gtsam.calibration.fit_sensor_terms`) on a sequence with
     ground truth.
@@ -373,7 +374,10 @@ def calibrate_sequence(
     per-point model as it is) unless ``fit_correlation_factor``. Pairs the integrity check flagged are
     left out (their data is suspect), and so are the pairs of the first frames, which the frame
     clock has not placed yet; the prior terms (:data:`~covo_gtsam.calibration.PRIOR_TERMS`) are
-    held at ``config``'s values. Returns ``(SensorTerms, RunResult)``.
+    held at ``config``'s values. With ``reference_sd`` (rad, per axis: the ground truth's own rotation
+    jitter per sample, :func:`~covo_gtsam.reference_noise.reference_jitter`) that jitter is held as a
+    known term too (:func:`~covo_gtsam.reference_noise.pair_jitter_covariances`), so the fitted terms
+    describe the camera without its reference. Returns ``(SensorTerms, RunResult)``.
 
     Raises:
         DatasetError: the sequence has no ground truth.
@@ -398,9 +402,16 @@ def calibrate_sequence(
     if len(T_est) < 10:
         raise InputError(f"{seq.path}: the fit needs at least 10 consecutive tracked frame pairs with usable ground "
                          f"truth at both frames, got {len(T_est)} (of {len(consecutive)} consecutive tracked pairs)")
+    fixed = prior_covariances(consecutive, priors)
+    if reference_sd is not None:
+        from .reference_noise import pair_jitter_covariances
+
+        jitter = pair_jitter_covariances(seq.gt_samples[0], reference_sd, [s.ref_timestamp for s in consecutive],
+                                         [s.timestamp for s in consecutive])
+        fixed = jitter if fixed is None else fixed + jitter
     return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs, fit_correlation_factor,
                             bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),
-                            fixed=prior_covariances(consecutive, priors)), result
+                            fixed=fixed), result
 
 
 def calibration_pairs(steps, lookup: dict, config: OdometryConfig, require_clock: bool = True) -> list[OdometryStep]:

@@ -74,3 +74,25 @@ def reference_jitter(stamps: np.ndarray, poses: np.ndarray, neighbours: int = 3)
         return np.sqrt(np.median(r**2 / scale[:, None], axis=0) / CHI2_1_MEDIAN)
 
     return {"rotation_rad": sd(r_rot), "translation_m": sd(r_tr), "samples": int(centre.size)}
+
+
+def pair_jitter_covariances(stamps: np.ndarray, rotation_sd: np.ndarray, ref_stamps: np.ndarray,
+                            cur_stamps: np.ndarray) -> np.ndarray:
+    """What the reference's rotation jitter (s.d. per axis, rad, e.g. :func:`reference_jitter`'s)
+    adds (N, 6, 6; tangent ``[omega, v]``) to the error of each pair of frames at ``ref_stamps`` and
+    ``cur_stamps`` (N,) measured against it: the reference at a frame is interpolated between its
+    two samples ``a`` of the way (0..1), so it keeps ``(1 - a)^2 + a^2`` of a sample's variance,
+    the pair the sum of its two frames'. Rotation block only (the translation jitter, a tenth of a
+    millimetre on TUM's, is left out); the axes are the frames', as the pair's error's to first
+    order. ``stamps`` (M,) are the reference's sample times, sorted."""
+    t = np.asarray(stamps, dtype=float).reshape(-1)
+
+    def kept(q: np.ndarray) -> np.ndarray:
+        hi = np.clip(np.searchsorted(t, q), 1, len(t) - 1)
+        a = np.clip((q - t[hi - 1]) / np.maximum(t[hi] - t[hi - 1], 1e-12), 0.0, 1.0)
+        return (1 - a) ** 2 + a**2
+
+    share = kept(np.asarray(ref_stamps, dtype=float)) + kept(np.asarray(cur_stamps, dtype=float))
+    out = np.zeros((share.shape[0], 6, 6))
+    out[:, :3, :3] = np.diag(np.asarray(rotation_sd, dtype=float) ** 2) * share[:, None, None]
+    return out

@@ -327,23 +327,16 @@ def closure_table(data: Path) -> list[str]:
 
 
 def reference_covariances(seq: TumSequence, end: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Per-axis s.d. (rad) of the ground truth's own rotation noise per sample
-    (:func:`covo_gtsam.reference_noise.reference_jitter`) and what it adds (N, 6, 6) to the error
-    of each pair of frames ``end - k`` and ``end``: the ground truth at a frame is interpolated
-    between two samples ``a`` apart in time (0..1), so it keeps ``(1-a)^2 + a^2`` of a sample's
-    variance, rotation block only (its translation noise, 0.1 mm, is left out)."""
+    """Per-axis s.d. (rad) of the ground truth's own rotation noise per sample and what it adds
+    (N, 6, 6) to the error of each pair of frames ``end - k`` and ``end``
+    (:func:`covo_gtsam.reference_noise.pair_jitter_covariances`)."""
     from covo_gtsam.io import load_tum_trajectory
-    from covo_gtsam.reference_noise import reference_jitter
+    from covo_gtsam.reference_noise import pair_jitter_covariances, reference_jitter
 
     stamps, poses = load_tum_trajectory(seq.path / "groundtruth.txt")
     sd = reference_jitter(stamps, poses)["rotation_rad"]
     ts = np.asarray(seq.timestamps)
-    hi = np.clip(np.searchsorted(stamps, ts), 1, len(stamps) - 1)
-    a = (ts - stamps[hi - 1]) / (stamps[hi] - stamps[hi - 1])
-    keep = (1 - a) ** 2 + a**2
-    covs = np.zeros((len(end), 6, 6))
-    covs[:, :3, :3] = np.diag(sd**2) * (keep[end - k] + keep[end])[:, None, None]
-    return sd, covs
+    return sd, pair_jitter_covariances(stamps, sd, ts[end - k], ts[end])
 
 
 def reference_table(data: Path) -> list[str]:

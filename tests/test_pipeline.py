@@ -184,6 +184,21 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
     assert set(bases) == set(ERROR_TERMS)
 
 
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_calibration_with_the_references_jitter_held_fits_the_cameras_frame_term(fr1_rpy_dir, tmp_path):
+    """Frames 0-119 of fr1_rpy with the ground truth's own rotation jitter held as a known term: the
+    frame term is 0.062 deg (0.096 with the jitter inside it; docs/derivation.md)."""
+    pytest.importorskip("scipy")
+    from covo_gtsam.pipeline import calibrate_sequence
+    from covo_gtsam.reference_noise import reference_jitter
+
+    seq = TumSequence(fr1_rpy_dir)
+    sd = reference_jitter(*seq.gt_samples)["rotation_rad"]
+    fit, _ = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False, reference_sd=sd)
+    assert fit.frame_sigma_rot_deg == pytest.approx(0.062, rel=0.05)
+
+
 @pytest.mark.slow
 def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     """`covo calibrate` fits the sensor terms on the sample's 39 consecutive pairs, writes
@@ -211,6 +226,25 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     assert cfg.sensor.correlation_factor == pytest.approx(s["correlation_factor"], rel=1e-2)
     assert cfg.sensor.latency_sigma_s == pytest.approx(s["latency_sigma_s"], rel=1e-2)
     assert (out / "per_point_run" / "relative.txt").is_file()
+    assert s["reference_jitter_held_deg"] is None
+    # the ground truth's own jitter held as a known term: recorded, and less left for the frame term
+    held = tmp_path / "held"
+    assert main(["calibrate", str(sample_dir), "--out", str(held), "--quiet", "--reference-jitter"]) == 0
+    h = json.loads((held / "calibration.json").read_text())
+    assert len(h["reference_jitter_held_deg"]) == 3 and 0.03 < h["reference_jitter_held_deg"][0] < 0.12
+    assert h["frame_sigma_rot_deg"] < s["frame_sigma_rot_deg"] and h["pairs"] == s["pairs"]
+
+
+def test_calibrate_with_the_reference_jitter_needs_its_samples(sample_dir, tmp_path, capsys):
+    import shutil
+
+    seq = tmp_path / "rgbd_dataset_freiburg1_fewgt"
+    shutil.copytree(sample_dir, seq)
+    lines = (seq / "groundtruth.txt").read_text().splitlines()
+    (seq / "groundtruth.txt").write_text("\n".join(lines[:12]) + "\n")  # comments and a few samples
+    assert main(["calibrate", str(seq), "--out", str(tmp_path / "cal"), "--quiet", "--reference-jitter"]) == 2
+    err = capsys.readouterr().err
+    assert "--reference-jitter needs" in err and "Traceback" not in err
 
 
 def test_calibrate_without_ground_truth_is_a_clear_error(sample_dir, tmp_path, capsys):
