@@ -14,6 +14,7 @@ rpe1_m, rpe30_m     translational RPE RMSE (m) over 1 and 30 frames (empty witho
 ate_m               ATE RMSE (m) after alignment
 anees_t, anees_r    ANEES of translation and rotation (3 = consistent)
 above_9.35_t/_r     share of frame pairs whose NEES exceeds chi2(3) 97.5 % = 9.35
+chain_anees_t/_r    the same over chains of 30 consecutive pairs (composed as between factors)
 frames_per_s        speed of that run (the only column that depends on where it ran)
 ==================  ===========================================================================
 
@@ -32,7 +33,7 @@ from .errors import ConfigError, DatasetError
 __all__ = ["COLUMNS", "evaluate_sequences", "run_one", "summary_row"]
 
 COLUMNS = ("sequence", "frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r",
-           "above_9.35_t", "above_9.35_r", "frames_per_s")
+           "above_9.35_t", "above_9.35_r", "chain_anees_t", "chain_anees_r", "frames_per_s")
 
 
 def _get(m: dict, *keys):
@@ -56,6 +57,8 @@ def summary_row(name: str, metrics: dict) -> dict:
         "anees_r": metrics.get("anees_rotation"),
         "above_9.35_t": metrics.get("share_nees_translation_above_chi2_975"),
         "above_9.35_r": metrics.get("share_nees_rotation_above_chi2_975"),
+        "chain_anees_t": _get(metrics, "chains", "anees_translation"),
+        "chain_anees_r": _get(metrics, "chains", "anees_rotation"),
         "frames_per_s": metrics.get("frames_per_second"),
     }
 

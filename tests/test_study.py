@@ -9,7 +9,8 @@ import pytest
 
 from covo_gtsam.cli import main
 
-NUMBERS = ("frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r", "above_9.35_t", "above_9.35_r")
+NUMBERS = ("frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r", "above_9.35_t", "above_9.35_r",
+           "chain_anees_t", "chain_anees_r")
 
 
 def _rows(out):
