@@ -134,21 +134,30 @@ def compose_covariance(T_a: gtsam.Pose3, cov_a: np.ndarray, T_b: gtsam.Pose3, co
     return A @ cov_a @ A.T + cov_b
 
 
-def compose_chains(T: np.ndarray, cov: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (M, 4, 4) and first-order covariances (M, 6, 6) of every chain ``T_i T_i+1 ... T_i+length-1``
-    of ``length`` consecutive relative poses ``T`` (N, 4, 4) with covariances ``cov`` (N, 6, 6),
-    the poses independent (as between factors are): :func:`compose_covariance` applied along each
-    chain, all chains at once. ``M = N - length + 1`` (0 when ``N < length``)."""
+def compose_chains(T: np.ndarray, cov: np.ndarray, length: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (M, 4, 4) and first-order covariances (M, 6, 6) of chains of relative poses ``T``
+    (N, 4, 4) with covariances ``cov`` (N, 6, 6), the poses independent (as between factors are):
+    :func:`compose_covariance` applied along each chain, all chains at once. ``length`` an int:
+    every window ``T_i T_i+1 ... T_i+length-1`` (``M = N - length + 1``, 0 when ``N < length``);
+    or an index array (M, L): chain ``m`` composes ``T[index[m, 0]] ... T[index[m, L-1]]``."""
     T, cov = np.asarray(T, dtype=float), np.asarray(cov, dtype=float)
-    if T.ndim != 3 or T.shape[1:] != (4, 4) or cov.shape != (T.shape[0], 6, 6) or int(length) < 1:
-        raise InputError(f"need poses (N, 4, 4), covariances (N, 6, 6) and a length >= 1, got {T.shape}, "
-                         f"{cov.shape}, {length!r}")
-    m = T.shape[0] - int(length) + 1
-    if m <= 0:
+    if np.ndim(length) == 0:
+        if int(length) < 1:
+            raise InputError(f"a chain needs a length >= 1, got {length!r}")
+        index = np.arange(max(T.shape[0] - int(length) + 1, 0))[:, None] + np.arange(int(length))
+    else:
+        index = np.asarray(length)
+    if (T.ndim != 3 or T.shape[1:] != (4, 4) or cov.shape != (T.shape[0], 6, 6) or index.ndim != 2
+            or index.shape[1] < 1 or not np.issubdtype(index.dtype, np.integer)
+            or (index.size and not (0 <= index.min() and index.max() < T.shape[0]))):
+        raise InputError(f"need poses (N, 4, 4), covariances (N, 6, 6) and chains of indices into them, got "
+                         f"{T.shape}, {cov.shape}, {index.shape}")
+    if not index.shape[0]:
         return np.empty((0, 4, 4)), np.empty((0, 6, 6))
-    T_chain, C_chain = T[:m].copy(), cov[:m].copy()
-    for k in range(1, int(length)):
-        A = adjoint(invert_pose(T[k:k + m]))
-        C_chain = A @ C_chain @ np.swapaxes(A, 1, 2) + cov[k:k + m]
-        T_chain = T_chain @ T[k:k + m]
+    T_chain, C_chain = T[index[:, 0]].copy(), cov[index[:, 0]].copy()
+    for k in range(1, index.shape[1]):
+        Tk = T[index[:, k]]
+        A = adjoint(invert_pose(Tk))
+        C_chain = A @ C_chain @ np.swapaxes(A, 1, 2) + cov[index[:, k]]
+        T_chain = T_chain @ Tk
     return T_chain, C_chain

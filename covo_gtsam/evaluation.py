@@ -65,38 +65,32 @@ def relative_ground_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float
 
 def chain_statistics(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
                      length: int = CHAIN_PAIRS) -> dict:
-    """The covariance over chains of ``length`` consecutive tracked pairs, composed as independent
+    """The covariance over chains of ``length`` linked tracked pairs, composed as independent
     between factors compose them (:func:`~covo_gtsam.covariance.compose_chains`), against the
     ground truth between the chain's ends: :func:`consistency_statistics` of every such chain
-    (``nees_pairs``: the chains) and ``pairs_per_chain``. A chain runs through lost frames (the next
-    pair starts at the last tracked frame) but not across a restart or a frame without ground
-    truth. :class:`InputError` when no chain is that long."""
-    runs, run = [], []
-    for s in steps:
-        if s.status != "tracked":
-            continue
-        if s.ref_timestamp not in stamp_to_gt or s.timestamp not in stamp_to_gt or (
-                run and run[-1].timestamp != s.ref_timestamp):
-            runs.append(run)
-            run = []
-        if s.ref_timestamp in stamp_to_gt and s.timestamp in stamp_to_gt:
-            run.append(s)
-    runs.append(run)
-    nees_rot, nees_tr = [], []
-    for run in runs:
-        if len(run) < length:
-            continue
-        T_chain, C_chain = compose_chains(np.array([s.relative.matrix() for s in run]),
-                                          np.array([s.covariance for s in run]), length)
-        starts = np.array([stamp_to_gt[s.ref_timestamp] for s in run[:len(run) - length + 1]])
-        ends = np.array([stamp_to_gt[s.timestamp] for s in run[length - 1:]])
-        r, t = relative_pose_nees(T_chain, invert_pose(starts) @ ends, C_chain)
-        nees_rot.append(r)
-        nees_tr.append(t)
-    if not nees_rot:
-        raise InputError(f"no {length} consecutive tracked pairs with ground truth")
-    return {"pairs_per_chain": int(length),
-            **consistency_statistics(np.concatenate(nees_rot), np.concatenate(nees_tr))}
+    (``nees_pairs``: the chains) and ``pairs_per_chain``. A pair links to the pair that ends at its
+    reference frame: frame to frame the previous one (across lost frames too), with keyframes the
+    keyframe's own. A chain stops at a restart and at a frame without ground truth.
+    :class:`InputError` when no chain is that long."""
+    pairs = [s for s in steps if s.status == "tracked" and s.ref_timestamp in stamp_to_gt
+             and s.timestamp in stamp_to_gt]
+    ending = {s.timestamp: i for i, s in enumerate(pairs)}
+    chains = []
+    for i in range(len(pairs)):
+        chain = [i]
+        while len(chain) < length and pairs[chain[-1]].ref_timestamp in ending:
+            chain.append(ending[pairs[chain[-1]].ref_timestamp])
+        if len(chain) == length:
+            chains.append(chain[::-1])
+    if not chains:
+        raise InputError(f"no chain of {length} linked tracked pairs with ground truth")
+    index = np.array(chains)
+    T_chain, C_chain = compose_chains(np.array([s.relative.matrix() for s in pairs]),
+                                      np.array([s.covariance for s in pairs]), index)
+    starts = np.array([stamp_to_gt[pairs[c[0]].ref_timestamp] for c in chains])
+    ends = np.array([stamp_to_gt[pairs[c[-1]].timestamp] for c in chains])
+    nees_rot, nees_tr = relative_pose_nees(T_chain, invert_pose(starts) @ ends, C_chain)
+    return {"pairs_per_chain": int(length), **consistency_statistics(nees_rot, nees_tr)}
 
 
 def tracked_segments(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]):
@@ -150,8 +144,9 @@ class RunEvaluation:
 
     Without ground truth only the frame counts, lost frames, timing and flagged pairs are filled
     in (``has_ground_truth`` False). With it, a statistic that cannot be computed is None and
-    ``not_computed[name]`` says why (``"rpe_<delta>"``, ``"ate"``, ``"anees"``); its array is then
-    empty, or holds the values that made it fail (not finite).
+    ``not_computed[name]`` says why (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``,
+    ``"reference_jitter"``); its array, if it has one, is then empty, or holds the values that made it
+    fail (not finite).
     """
 
     sequence: str
@@ -209,8 +204,8 @@ class RunEvaluation:
 
     def to_dict(self) -> dict:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then with ground truth
-        ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate`` and the :data:`CONSISTENCY_KEYS`,
-        then ``self_calibration`` and ``version`` when they are set."""
+        ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`,
+        ``chains`` and ``reference_jitter``, then ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
             "sequence": self.sequence,
             "frames": self.frames,

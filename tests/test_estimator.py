@@ -165,6 +165,12 @@ def test_chains_of_poses_match_a_monte_carlo_and_pairwise_composition():
     assert compose_chains(T, C, 7)[0].shape == (0, 4, 4)
     with pytest.raises(InputError):
         compose_chains(T, C[:-1], 2)
+    # chains given by index: the same windows, and an index off the poses is an error
+    Ti, Ci = compose_chains(T, C, np.arange(3)[:, None] + np.arange(4))
+    np.testing.assert_array_equal(Ti, Tc)
+    np.testing.assert_array_equal(Ci, Cc)
+    with pytest.raises(InputError):
+        compose_chains(T, C, np.array([[0, 6]]))
 
 
 def test_scale_is_linear():

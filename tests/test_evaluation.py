@@ -47,6 +47,9 @@ def test_statistics_summarise_the_arrays_kept(sample_run):
     assert ev.consistency["nees_pairs"] == ev.nees_translation.size == ev.nees_rotation.size
     assert ev.consistency["anees_translation"] == np.mean(ev.nees_translation)
     assert ev.consistency["anees_rotation"] == np.mean(ev.nees_rotation)
+    # 34 consecutive pairs, none lost: 5 chains of 30
+    assert ev.chains["nees_pairs"] == 5 and ev.chains["pairs_per_chain"] == 30
+    assert ev.to_dict()["chains"] == ev.chains and ev.chains["anees_translation"] > 0
     assert ev.tracked_frames + ev.lost_frames == ev.frames == 35
     assert set(ev.ground_truth) >= {s.timestamp for s in sample_run.steps if s.tracked}
 
@@ -168,9 +171,31 @@ def test_chains_run_through_lost_frames_but_not_across_restarts_or_missing_truth
                             covariance=steps[11].covariance)
     assert chain_statistics(lost, gt, 30)["nees_pairs"] == 10
     restarted = steps[:20] + [OdometryStep(20.0, "restart", reason="test")] + steps[21:]
-    with pytest.raises(InputError, match="no 30 consecutive"):
+    with pytest.raises(InputError, match="no chain of 30"):
         chain_statistics(restarted, gt, 30)
     no_truth = {t: g for t, g in gt.items() if t != 25.0}
     with pytest.raises(InputError):
         chain_statistics(steps, no_truth, 30)
     assert chain_statistics(steps, no_truth, 20)["nees_pairs"] == 5  # pairs ending in frames 1-24 only
+
+
+def test_keyframe_chains_follow_each_pair_to_its_reference():
+    """Keyframes 0, 2, 4, 6: each pair links to the pair that ends at its keyframe, so frame 7's
+    chain of four is 0-2, 2-4, 4-6, 6-7; with exact poses every chain's error is zero, which a
+    wrong order of composition or a wrong ground-truth start would not give."""
+    import gtsam
+
+    from covo_gtsam.evaluation import chain_statistics
+    from covo_gtsam.odometry import OdometryStep
+
+    rng = np.random.default_rng(1)
+    gt = {float(k): gtsam.Pose3.Expmap(rng.normal(scale=0.2, size=6)).matrix() for k in range(8)}
+    refs = {1: 0, 2: 0, 3: 2, 4: 2, 5: 4, 6: 4, 7: 6}
+    steps = [OdometryStep(0.0, "first")] + [
+        OdometryStep(float(k), "tracked", ref_timestamp=float(r),
+                     relative=gtsam.Pose3(np.linalg.inv(gt[float(r)]) @ gt[float(k)]), covariance=np.eye(6) * 1e-4)
+        for k, r in refs.items()]
+    three, four = chain_statistics(steps, gt, 3), chain_statistics(steps, gt, 4)
+    assert three["nees_pairs"] == 3 and four["nees_pairs"] == 1  # 5, 6, 7; and 7
+    for out in (three, four):
+        assert out["anees_translation"] < 1e-12 and out["anees_rotation"] < 1e-12
