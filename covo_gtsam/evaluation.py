@@ -65,13 +65,19 @@ def relative_ground_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float
 
 def chain_statistics(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
                      length: int = CHAIN_PAIRS) -> dict:
-    """The covariance over chains of ``length`` linked tracked pairs, composed as independent
-    between factors compose them (:func:`~covo_gtsam.covariance.compose_chains`), against the
-    ground truth between the chain's ends: :func:`consistency_statistics` of every such chain
-    (``nees_pairs``: the chains) and ``pairs_per_chain``. A pair links to the pair that ends at its
-    reference frame: frame to frame the previous one (across lost frames too), with keyframes the
-    keyframe's own. A chain stops at a restart and at a frame without ground truth.
-    :class:`InputError` when no chain is that long."""
+    """:func:`consistency_statistics` of :func:`chain_nees` (``nees_pairs``: the chains), and
+    ``pairs_per_chain``."""
+    return {"pairs_per_chain": int(length), **consistency_statistics(*chain_nees(steps, stamp_to_gt, length))}
+
+
+def chain_nees(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
+               length: int = CHAIN_PAIRS) -> tuple[np.ndarray, np.ndarray]:
+    """NEES of the rotation and of the translation (M,) of every chain of ``length`` linked tracked
+    pairs, the covariance composed as independent between factors compose it
+    (:func:`~covo_gtsam.covariance.compose_chains`), against the ground truth between the chain's
+    ends. A pair links to the pair that ends at its reference frame: frame to frame the previous
+    one (across lost frames too), with keyframes the keyframe's own. A chain stops at a restart and
+    at a frame without ground truth. :class:`InputError` when no chain is that long."""
     pairs = [s for s in steps if s.status == "tracked" and s.ref_timestamp in stamp_to_gt
              and s.timestamp in stamp_to_gt]
     ending = {s.timestamp: i for i, s in enumerate(pairs)}
@@ -89,8 +95,7 @@ def chain_statistics(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.
                                       np.array([s.covariance for s in pairs]), index)
     starts = np.array([stamp_to_gt[pairs[c[0]].ref_timestamp] for c in chains])
     ends = np.array([stamp_to_gt[pairs[c[-1]].timestamp] for c in chains])
-    nees_rot, nees_tr = relative_pose_nees(T_chain, invert_pose(starts) @ ends, C_chain)
-    return {"pairs_per_chain": int(length), **consistency_statistics(nees_rot, nees_tr)}
+    return relative_pose_nees(T_chain, invert_pose(starts) @ ends, C_chain)
 
 
 def tracked_segments(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]):
@@ -187,6 +192,9 @@ class RunEvaluation:
     #: NEES of the rotation and of the translation (3 dof each) of each tracked pair
     nees_rotation: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
     nees_translation: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
+    #: the same of each chain of :data:`CHAIN_PAIRS` pairs (:func:`chain_nees`)
+    chain_nees_rotation: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
+    chain_nees_translation: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
     #: frame timestamp -> ground-truth pose T_world,cam (:func:`ground_truth_lookup`)
     ground_truth: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
 
@@ -286,7 +294,12 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
     ev.consistency = _computed(ev.not_computed, "anees", consistency,
                                None if len(T_est) else "no tracked frame pair has ground truth at both frames")
-    ev.chains = _computed(ev.not_computed, "chains", partial(chain_statistics, steps, gt),
+    def chains():
+        ev.chain_nees_rotation, ev.chain_nees_translation = chain_nees(steps, gt)
+        return {"pairs_per_chain": CHAIN_PAIRS,
+                **consistency_statistics(ev.chain_nees_rotation, ev.chain_nees_translation)}
+
+    ev.chains = _computed(ev.not_computed, "chains", chains,
                           None if len(T_est) else "no tracked frame pair has ground truth at both frames")
     samples = getattr(seq, "gt_samples", None)
     ev.reference = _computed(

@@ -22,12 +22,18 @@ def _plt():
     return plt
 
 
-def nees_histogram(ax, nees: np.ndarray, title: str, dof: int = 3) -> None:
-    """Histogram of NEES values with the chi2(dof) density and its 2.5 %/97.5 % quantiles."""
+def nees_histogram(ax, nees: np.ndarray, title: str, dof: int = 3, chains: np.ndarray | None = None,
+                   chain_label: str = "chains") -> None:
+    """Histogram of NEES values with the chi2(dof) density and its 2.5 %/97.5 % quantiles; with
+    ``chains`` (NEES of composed chains) their histogram as an outline on the same bins."""
     nees = np.asarray(nees)
-    upper = max(chi2_quantile(0.995, dof) * 1.5, float(np.percentile(nees, 95)) if nees.size else 0.0)
+    chains = np.empty(0) if chains is None else np.asarray(chains)
+    upper = max(chi2_quantile(0.995, dof) * 1.5, *(float(np.percentile(v, 95)) for v in (nees, chains) if v.size))
     bins = np.linspace(0, upper, 40)
     ax.hist(np.clip(nees, 0, upper), bins=bins, density=True, alpha=0.6, label=f"NEES (mean {np.mean(nees):.2f})")
+    if chains.size:
+        ax.hist(np.clip(chains, 0, upper), bins=bins, density=True, histtype="step", lw=1.5, color="tab:purple",
+                label=f"{chain_label} (mean {np.mean(chains):.2f})")
     x = np.linspace(1e-3, upper, 300)
     ax.plot(x, chi2_pdf(x, dof), "k-", lw=1.5, label=f"$\\chi^2({dof})$ density")
     for p in (0.025, 0.975):
@@ -123,8 +129,11 @@ def plot_run(steps: Sequence, evaluation, out_dir: Path) -> list[Path] | None:
 
     if evaluation.nees_translation.size:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-        nees_histogram(axes[0], evaluation.nees_translation, "translation NEES per frame pair")
-        nees_histogram(axes[1], evaluation.nees_rotation, "rotation NEES per frame pair")
+        label = f"chains of {(evaluation.chains or {}).get('pairs_per_chain')} pairs, composed"
+        nees_histogram(axes[0], evaluation.nees_translation, "translation NEES per frame pair",
+                       chains=evaluation.chain_nees_translation, chain_label=label)
+        nees_histogram(axes[1], evaluation.nees_rotation, "rotation NEES per frame pair",
+                       chains=evaluation.chain_nees_rotation, chain_label=label)
         written.append(save_figure(fig, out_dir / "nees.png"))
 
     data_t, data_r, labels = [], [], []

@@ -50,6 +50,8 @@ def test_statistics_summarise_the_arrays_kept(sample_run):
     # 34 consecutive pairs, none lost: 5 chains of 30
     assert ev.chains["nees_pairs"] == 5 and ev.chains["pairs_per_chain"] == 30
     assert ev.to_dict()["chains"] == ev.chains and ev.chains["anees_translation"] > 0
+    assert ev.chain_nees_translation.size == ev.chain_nees_rotation.size == 5
+    assert ev.chains["anees_translation"] == np.mean(ev.chain_nees_translation)
     assert ev.tracked_frames + ev.lost_frames == ev.frames == 35
     assert set(ev.ground_truth) >= {s.timestamp for s in sample_run.steps if s.tracked}
 
@@ -96,7 +98,8 @@ def test_figures_read_the_result_object_not_a_second_computation(sample_run, tmp
 
     for module in (evaluation, metrics):
         for name in ("relative_pose_nees", "relative_pose_errors", "ate_errors", "segment_rpe_errors",
-                     "relative_ground_truth", "tracked_segments", "ground_truth_lookup"):
+                     "relative_ground_truth", "tracked_segments", "ground_truth_lookup", "chain_nees",
+                     "compose_chains"):
             if hasattr(module, name):
                 monkeypatch.setattr(module, name, fail)
     written = plot_run(sample_run.steps, sample_run.evaluation, tmp_path)
