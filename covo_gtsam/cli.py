@@ -59,6 +59,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         line += f", RPE30 {m['rpe_30']['trans_rmse']:.4f} m"
     if m.get("anees_translation") is not None and m.get("anees_rotation") is not None:
         line += f", ANEES t {m['anees_translation']:.2f} r {m['anees_rotation']:.2f}"
+    if m.get("chains"):
+        c = m["chains"]
+        line += f" (chains of {c['pairs_per_chain']}: t {c['anees_translation']:.2f} r {c['anees_rotation']:.2f})"
     print(line)
     if getattr(seq, "groundtruth", None) is None:
         print(f"{seq.name}: no ground truth; accuracy and consistency metrics skipped")

@@ -22,7 +22,8 @@ from conftest import corrupt_frame, frame_files
 def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["run", str(sample_dir), "--out", str(out), "--quiet"]) == 0
-    assert "40 frames" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "40 frames" in printed
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == 40 and m["lost_frames"] == 0 and m["frames_per_second"] > 0
     for key in ("rpe_1", "rpe_30", "ate", "anees_translation", "anees_rotation"):
@@ -51,6 +52,26 @@ def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     r.process_data((ref, est))
     assert r.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(m["rpe_1"]["trans_rmse"], rel=1e-5)
     assert {p.name for p in (out / "plots").iterdir()} >= {"trajectory.png", "nees.png", "rpe.png"}
+    # the 30-pair chains: from relative.txt, composed pair by pair with GTSAM's adjoint, against the
+    # ground truth between the chains' ends (the ten windows of the 39 consecutive pairs)
+    import gtsam
+
+    from covo_gtsam.covariance import compose_covariance
+
+    c = m["chains"]
+    assert f"(chains of 30: t {c['anees_translation']:.2f} r {c['anees_rotation']:.2f})" in printed
+    gt_at = dict(zip(np.round(seq.timestamps, 6), seq.groundtruth))
+    nees_t = []
+    for start in range(len(rel) - 29):
+        T, C = gtsam.Pose3(rel[start]), covs[start]
+        for k in range(start + 1, start + 30):
+            C = compose_covariance(T, C, gtsam.Pose3(rel[k]), covs[k])
+            T = T.compose(gtsam.Pose3(rel[k]))
+        true = np.linalg.inv(gt_at[round(t_ref[start], 6)]) @ gt_at[round(t_cur[start + 29], 6)]
+        xi = gtsam.Pose3.Logmap(T.between(gtsam.Pose3(true)))
+        nees_t.append(xi[3:] @ np.linalg.solve(C[3:, 3:], xi[3:]))
+    assert c["nees_pairs"] == len(nees_t) == 10
+    assert c["anees_translation"] == pytest.approx(np.mean(nees_t), rel=1e-3)
 
 
 @pytest.mark.slow
