@@ -244,9 +244,10 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     cal.add_argument("--config", metavar="FILE",
                      help="TOML or JSON settings for the run; its sensor terms are ignored (see README)")
     cal.add_argument("--reference-jitter", action="store_true",
-                     help="hold the ground truth's own rotation jitter (measured from its samples; reference_jitter "
-                     "in metrics.json) as a known term: the fitted terms then describe the camera alone, not the "
-                     "camera against this ground truth (default: both in the fitted terms, as the defaults were fitted)")
+                     help="hold the ground truth's own rotation jitter, measured from all its samples (as "
+                     "reference_jitter in metrics.json, which covers a run's time span only), as a known term: the "
+                     "fitted terms then describe the camera alone (default: the fitted terms take in the camera's "
+                     "error and the ground truth's jitter, as the defaults did)")
     _output_arguments(cal, plots=False)
     cal.set_defaults(func=handlers["calibrate"])
     return parser
