@@ -17,7 +17,7 @@ import numpy as np
 
 from .chi2 import CHI2_3_975
 from .covariance import compose_chains
-from .datasets.tum import MAX_GT_COORDINATE
+from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
 from .geometry import invert_pose
 from .metrics import ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
@@ -63,11 +63,10 @@ def relative_ground_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float
     return np.array(est).reshape(-1, 4, 4), np.array(true).reshape(-1, 4, 4), np.array(covs).reshape(-1, 6, 6)
 
 
-def chain_statistics(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
-                     length: int = CHAIN_PAIRS) -> dict:
-    """:func:`consistency_statistics` of :func:`chain_nees` (``nees_pairs``: the chains), and
-    ``pairs_per_chain``."""
-    return {"pairs_per_chain": int(length), **consistency_statistics(*chain_nees(steps, stamp_to_gt, length))}
+def chain_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray, length: int = CHAIN_PAIRS) -> dict:
+    """``metrics.json``'s ``chains``: :func:`consistency_statistics` of the chains' NEES values
+    (:func:`chain_nees`; ``nees_pairs``: the chains) and ``pairs_per_chain`` (``length``)."""
+    return {"pairs_per_chain": int(length), **consistency_statistics(nees_rot, nees_tr)}
 
 
 def chain_nees(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
@@ -175,7 +174,7 @@ class RunEvaluation:
     ate: dict | None = None
     #: :func:`consistency_statistics` of the tracked pairs' relative poses
     consistency: dict | None = None
-    #: :func:`chain_statistics` over chains of :data:`CHAIN_PAIRS` pairs
+    #: :func:`chain_statistics` of chains of :data:`CHAIN_PAIRS` pairs
     chains: dict | None = None
     #: the ground truth's own noise over the run's time span (:func:`reference_statistics`)
     reference: dict | None = None
@@ -292,15 +291,13 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
         ev.nees_rotation, ev.nees_translation = relative_pose_nees(T_est, T_true, covs)
         return consistency_statistics(ev.nees_rotation, ev.nees_translation)
 
-    ev.consistency = _computed(ev.not_computed, "anees", consistency,
-                               None if len(T_est) else "no tracked frame pair has ground truth at both frames")
+    no_pairs = None if len(T_est) else "no tracked frame pair has ground truth at both frames"
+    ev.consistency = _computed(ev.not_computed, "anees", consistency, no_pairs)
     def chains():
         ev.chain_nees_rotation, ev.chain_nees_translation = chain_nees(steps, gt)
-        return {"pairs_per_chain": CHAIN_PAIRS,
-                **consistency_statistics(ev.chain_nees_rotation, ev.chain_nees_translation)}
+        return chain_statistics(ev.chain_nees_rotation, ev.chain_nees_translation)
 
-    ev.chains = _computed(ev.not_computed, "chains", chains,
-                          None if len(T_est) else "no tracked frame pair has ground truth at both frames")
+    ev.chains = _computed(ev.not_computed, "chains", chains, no_pairs)
     samples = getattr(seq, "gt_samples", None)
     ev.reference = _computed(
         ev.not_computed, "reference_jitter", partial(reference_statistics, samples, steps),
@@ -315,9 +312,7 @@ def reference_statistics(samples: tuple[np.ndarray, np.ndarray], steps: Sequence
     0.1 s either side): rotation about the camera's axes in degrees, translation along them in mm."""
     stamps, poses = samples
     lo, hi = min(s.timestamp for s in steps) - 0.1, max(s.timestamp for s in steps) + 0.1
-    with np.errstate(invalid="ignore"):  # NaN rows are dropped here too
-        usable = np.abs(poses[:, :3, 3]).max(axis=1) <= MAX_GT_COORDINATE
-    inside = (stamps >= lo) & (stamps <= hi) & usable
+    inside = (stamps >= lo) & (stamps <= hi) & usable_poses(poses)
     out = reference_jitter(stamps[inside], poses[inside])
     if out is None:
         raise InputError("too few evenly spaced ground-truth samples in the run's time span")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
+from .geometry import invert_pose
 from .metrics import se3_log
 
 #: median of chi2 with one degree of freedom
@@ -64,7 +65,7 @@ def reference_jitter(stamps: np.ndarray, poses: np.ndarray, neighbours: int = 3)
     scale = 1.0 + (w**2).sum(axis=1)
     Pi = P[centre]
     Rt = Pi[:, :3, :3].transpose(0, 2, 1)
-    rel = np.einsum("mij,mnjk->mnik", np.linalg.inv(Pi), P[centre[:, None] + offsets])  # T_i^-1 T_j
+    rel = np.einsum("mij,mnjk->mnik", invert_pose(Pi), P[centre[:, None] + offsets])  # T_i^-1 T_j
     rot = se3_log(rel.reshape(-1, 4, 4))[:, :3].reshape(len(centre), 2 * k, 3)
     r_rot = np.einsum("mn,mni->mi", w, rot)  # the sample itself is the identity in its own axes
     r_tr = np.einsum("mij,mj->mi", Rt, np.einsum("mn,mni->mi", w, P[centre[:, None] + offsets, :3, 3])

@@ -14,7 +14,7 @@ rpe1_m, rpe30_m     translational RPE RMSE (m) over 1 and 30 frames (empty witho
 ate_m               ATE RMSE (m) after alignment
 anees_t, anees_r    ANEES of translation and rotation (3 = consistent)
 above_9.35_t/_r     share of frame pairs whose NEES exceeds chi2(3) 97.5 % = 9.35
-chain_anees_t/_r    the same over chains of 30 consecutive pairs (composed as between factors)
+chain_anees_t/_r    the same over chains of 30 linked pairs (composed as between factors; metrics.json's chains)
 frames_per_s        speed of that run (the only column that depends on where it ran)
 ==================  ===========================================================================
 

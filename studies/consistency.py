@@ -373,8 +373,7 @@ def chain_tables(pairs: dict) -> list[str]:
         cells = []
         for w in CHAIN_WINDOWS:
             est, covs = compose_chains(p["T_est"], p["cov"], w)
-            true = np.array([np.linalg.multi_dot(p["T_true"][s:s + w]) if w > 1 else p["T_true"][s]
-                             for s in range(len(est))])
+            true, _ = compose_chains(p["T_true"], p["cov"], w)
             xi = relative_pose_tangent_errors(est, true)
             nt, nr = nees(xi[:, 3:], covs[:, 3:, 3:]), nees(xi[:, :3], covs[:, :3, :3])
             cells.append(f"{nt.mean():.2f} / {nr.mean():.2f}; {100 * np.mean(nt > 9.35):.0f} % / "

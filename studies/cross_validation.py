@@ -90,8 +90,7 @@ def chain_anees(p: dict, covs: np.ndarray, w: int = CHAIN) -> tuple[float, float
         T, C = compose_chains(p["T_est"][run], covs[run], w)
         if not len(T):
             continue
-        true = np.array([np.linalg.multi_dot(p["T_true"][run[s:s + w]]) if w > 1 else p["T_true"][run[s]]
-                         for s in range(len(T))])
+        true, _ = compose_chains(p["T_true"][run], covs[run], w)
         t, r = anees_cells(relative_pose_tangent_errors(T, true), C)
         nt.append(t)
         nr.append(r)
@@ -330,10 +329,9 @@ def reference_covariances(seq: TumSequence, end: np.ndarray, k: int = 1) -> tupl
     """Per-axis s.d. (rad) of the ground truth's own rotation noise per sample and what it adds
     (N, 6, 6) to the error of each pair of frames ``end - k`` and ``end``
     (:func:`covo_gtsam.reference_noise.pair_jitter_covariances`)."""
-    from covo_gtsam.io import load_tum_trajectory
     from covo_gtsam.reference_noise import pair_jitter_covariances, reference_jitter
 
-    stamps, poses = load_tum_trajectory(seq.path / "groundtruth.txt")
+    stamps, poses = seq.gt_samples
     sd = reference_jitter(stamps, poses)["rotation_rad"]
     ts = np.asarray(seq.timestamps)
     return sd, pair_jitter_covariances(stamps, sd, ts[end - k], ts[end])
@@ -384,19 +382,21 @@ def persistence_table(data: Path) -> list[str]:
              "pairs, above 1 where a pair's error persists into the next ones, below 1 where the next pairs undo "
              "it). With independent between factors a chain's ANEES is about its pairs' ANEES times this ratio.", "",
              "| pairs | " + " | ".join(f"chains of {w}" for w in lengths) + " |", "|---" * (len(lengths) + 1) + "|"]
+    squared = np.stack([np.sum(p["err"][:, 3:] ** 2, axis=1), np.sum(p["err"][:, :3] ** 2, axis=1)], axis=1)
+    windows = {}  # w -> first and last frame, chain's and pairs' squared errors t / r of every window
+    for w in lengths:
+        est, _ = compose_chains(p["T_est"], p["cov"], w)
+        true, _ = compose_chains(p["T_true"], p["cov"], w)
+        e = relative_pose_tangent_errors(est, true)
+        windows[w] = (p["end"][:len(est)], p["end"][w - 1:],
+                      np.stack([np.sum(e[:, 3:] ** 2, axis=1), np.sum(e[:, :3] ** 2, axis=1)], axis=1),
+                      np.array([squared[s:s + w].sum(axis=0) for s in range(len(est))]))
     for label, lo, hi in (("frames 1-119", 1, 119), ("frames 120-239", 120, 239), ("all", 1, 239)):
         cells = []
         for w in lengths:
-            chain, pairs = [], []
-            for s in range(len(p["end"]) - w + 1):
-                span = p["end"][s:s + w]
-                if span[0] < lo or span[-1] > hi or span[-1] - span[0] != w - 1:
-                    continue
-                e = relative_pose_tangent_errors(np.linalg.multi_dot(p["T_est"][s:s + w])[None],
-                                                 np.linalg.multi_dot(p["T_true"][s:s + w])[None])[0]
-                chain.append([e[3:] @ e[3:], e[:3] @ e[:3]])
-                pairs.append([np.sum(p["err"][s:s + w, 3:] ** 2), np.sum(p["err"][s:s + w, :3] ** 2)])
-            ratio = np.mean(chain, axis=0) / np.mean(pairs, axis=0)
+            first, last, chain, pairs = windows[w]
+            m = (first >= lo) & (last <= hi) & (last - first == w - 1)
+            ratio = chain[m].mean(axis=0) / pairs[m].mean(axis=0)
             cells.append(f"{ratio[0]:.2f} / {ratio[1]:.2f}")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines + [""]

@@ -145,8 +145,15 @@ def _synthetic_run(n: int, persistent: bool, seed: int = 0):
     return steps, gt
 
 
+def chain_statistics(steps, gt, length):
+    """metrics.json's chains of a run's steps."""
+    from covo_gtsam.evaluation import chain_nees
+    from covo_gtsam.evaluation import chain_statistics as statistics
+
+    return statistics(*chain_nees(steps, gt, length), length)
+
+
 def test_chains_are_consistent_for_independent_errors_and_not_for_persistent_ones():
-    from covo_gtsam.evaluation import chain_statistics
 
     # 3000 pairs: 100 disjoint chains, so the chains' ANEES is 3 within about 0.25 (one s.d.)
     steps, gt = _synthetic_run(3000, persistent=False)
@@ -163,7 +170,6 @@ def test_chains_are_consistent_for_independent_errors_and_not_for_persistent_one
 
 
 def test_chains_run_through_lost_frames_but_not_across_restarts_or_missing_truth():
-    from covo_gtsam.evaluation import chain_statistics
     from covo_gtsam.odometry import OdometryStep
 
     steps, gt = _synthetic_run(40, persistent=False)
@@ -188,7 +194,6 @@ def test_keyframe_chains_follow_each_pair_to_its_reference():
     wrong order of composition or a wrong ground-truth start would not give."""
     import gtsam
 
-    from covo_gtsam.evaluation import chain_statistics
     from covo_gtsam.odometry import OdometryStep
 
     rng = np.random.default_rng(1)

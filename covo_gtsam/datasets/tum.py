@@ -244,9 +244,7 @@ class TumSequence:
             if stamps.size:
                 self.gt_samples = (stamps, poses)
                 self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps, max_gap)
-                G = self.groundtruth
-                usable = np.isfinite(G).all(axis=(1, 2)) & (np.abs(G[:, :3, 3]).max(axis=1) <= MAX_GT_COORDINATE)
-                self.gt_valid &= usable
+                self.gt_valid &= usable_poses(self.groundtruth)
 
     @property
     def camera(self):
@@ -337,3 +335,11 @@ class TumSequence:
     def __repr__(self) -> str:
         gt = "no ground truth" if self.groundtruth is None else f"{int(self.gt_valid.sum())} with ground truth"
         return f"TumSequence({self.name!r}, {len(self)} frames, {gt})"
+
+
+def usable_poses(P: np.ndarray) -> np.ndarray:
+    """Which ground-truth poses (K, 4, 4) are usable (K,): finite, positions within
+    :data:`MAX_GT_COORDINATE` m."""
+    P = np.asarray(P, dtype=float)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(P).all(axis=(1, 2)) & (np.abs(P[:, :3, 3]).max(axis=1) <= MAX_GT_COORDINATE)
