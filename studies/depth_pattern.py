@@ -14,6 +14,11 @@
 2. The per-point image noise at larger spans: the reprojection residual of each inlier pair of
    frames 1, 2 or 3 apart after the pair's own estimate (robust RMS per axis, px), by the span and
    by the ORB octave.
+3. The per-point depth noise at larger image displacements: the same pairs' residuals along the
+   reference ray after the pair's own estimate, in units of the Kinect model's ``sigma_Z`` (robust
+   s.d.), by the point's displacement between the two images and by the larger of the two frames'
+   stamped colour-depth offsets; and their mean square over the per-point model's variance along
+   the ray (both frames' covariances, as the estimator weighs them).
 """
 
 from __future__ import annotations
@@ -112,30 +117,70 @@ def explained(train: np.ndarray, tests: list[np.ndarray], kind: str, power: int,
     return out
 
 
-def pixel_residuals(seq: TumSequence) -> list[str]:
+def span_pairs(seq: TumSequence):
+    """Per pair of frames 1, 2 and 3 apart with enough inliers: ``(k, i, pairs, frames, X, R)``,
+    ``X`` the current points moved into the reference frame by the pair's own estimate, ``R`` its
+    rotation."""
     vo, frames = prepared(seq)
-    cam = vo.camera
-    lines = ["| frames apart | points | robust RMS per axis (px) | octave 0 | octave 3 | octave 7 |",
-             "|---|---|---|---|---|---|"]
     for k in (1, 2, 3):
-        res, octave = [], []
         for i in range(k, len(frames)):
-            p = associate_frames(frames[i - k], frames[i], vo.config.frontend, camera=cam)
+            p = associate_frames(frames[i - k], frames[i], vo.config.frontend, camera=vo.camera)
             if p.num_inliers < vo.config.frontend.min_pairs:
                 continue
             M = estimate_relative_pose(p.X_ref, p.X_cur, p.Q_ref, p.Q_cur).pose.matrix()
-            X = p.X_cur @ M[:3, :3].T + M[:3, 3]
-            uv = cam.undistort(p.uv_ref)
-            res.append(np.hypot(cam.fx * X[:, 0] / X[:, 2] + cam.cx - uv[:, 0],
-                                cam.fy * X[:, 1] / X[:, 2] + cam.cy - uv[:, 1]))
-            octave.append(np.maximum(frames[i - k].features.octave[p.idx_ref], frames[i].features.octave[p.idx_cur]))
-        res, octave = np.concatenate(res), np.concatenate(octave)
+            yield k, i, p, frames, p.X_cur @ M[:3, :3].T + M[:3, 3], M[:3, :3]
+
+
+def robust_sd(x: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+
+def pixel_residuals(seq: TumSequence) -> list[str]:
+    cam = VisualOdometry(seq.camera).camera
+    lines = ["| frames apart | points | robust RMS per axis (px) | octave 0 | octave 3 | octave 7 |",
+             "|---|---|---|---|---|---|"]
+    res, octave, span = [], [], []
+    for k, i, p, frames, X, _ in span_pairs(seq):
+        uv = cam.undistort(p.uv_ref)
+        res.append(np.hypot(cam.fx * X[:, 0] / X[:, 2] + cam.cx - uv[:, 0],
+                            cam.fy * X[:, 1] / X[:, 2] + cam.cy - uv[:, 1]))
+        octave.append(np.maximum(frames[i - k].features.octave[p.idx_ref], frames[i].features.octave[p.idx_cur]))
+        span.append(np.full(len(X), k))
+    res, octave, span = np.concatenate(res), np.concatenate(octave), np.concatenate(span)
+    for k in (1, 2, 3):
+        res_k, octave_k = res[span == k], octave[span == k]
 
         def rms(x):  # per axis, from the median of the 2-D norm (Rayleigh: median^2 = 1.386 sigma^2)
             return np.sqrt(np.median(x**2) / 1.386)
 
-        by_octave = " | ".join(f"{rms(res[octave == o]):.2f}" for o in (0, 3, 7))
-        lines.append(f"| {k} | {len(res)} | {rms(res):.2f} | {by_octave} |")
+        by_octave = " | ".join(f"{rms(res_k[octave_k == o]):.2f}" for o in (0, 3, 7))
+        lines.append(f"| {k} | {len(res_k)} | {rms(res_k):.2f} | {by_octave} |")
+    return lines
+
+
+def depth_residuals(seq: TumSequence) -> list[str]:
+    """Robust s.d. of the residuals along the reference ray after each pair's own estimate, in
+    units of the Kinect model's sigma_Z (1.425e-3 Z^2 at the two depths' mean), by the point's image
+    displacement and the pair's larger stamped colour-depth offset."""
+    offset = np.abs(np.asarray(seq.depth_timestamps) - np.asarray(seq.timestamps))
+    rows = []
+    for k, i, p, _, X, R in span_pairs(seq):
+        ray = p.X_ref / np.linalg.norm(p.X_ref, axis=1, keepdims=True)
+        z = 0.5 * (p.X_cur[:, 2] + p.X_ref[:, 2])
+        r = np.sum((X - p.X_ref) * ray, axis=1)
+        var = np.einsum("ni,nij,nj->n", ray, p.Q_ref + R @ p.Q_cur @ R.T, ray)  # the model's, along the ray
+        rows.append(np.column_stack([r / (1.425e-3 * z**2), r**2 / var, np.linalg.norm(p.uv_cur - p.uv_ref, axis=1),
+                                     np.full(len(X), 1e3 * max(offset[i], offset[i - k]))]))
+    r, model, disp, off = np.vstack(rows).T
+    bands = ((0, 5), (5, 12), (12, np.inf))
+    lines = ["| image displacement (px) | points | robust s.d. (sigma_Z) | offset below 5 ms | 5-12 ms | above 12 ms "
+             "| mean square over the point model's variance |", "|---|---|---|---|---|---|---|"]
+    for lo, hi in ((0, 30), (30, 50), (50, 80), (80, np.inf)):
+        m = (disp >= lo) & (disp < hi)
+        cells = [f"{robust_sd(r[m & (off >= a) & (off < b)]):.2f}" if np.sum(m & (off >= a) & (off < b)) >= 300
+                 else "—" for a, b in bands]
+        lines.append(f"| {lo}-{hi} | {int(m.sum())} | {robust_sd(r[m]):.2f} | " + " | ".join(cells)
+                     + f" | {model[m].mean():.2f} |")
     return lines
 
 
@@ -161,6 +206,8 @@ def main() -> None:
         print(f"\n({len(a)} / {len(b)} / {len(desk)} points)\n\nReprojection residuals after each pair's own estimate, "
               "fr1_rpy:\n")
         print("\n".join(pixel_residuals(rpy_seq)))
+        print("\nResiduals along the ray after each pair's own estimate (frames 1, 2 and 3 apart), fr1_rpy:\n")
+        print("\n".join(depth_residuals(rpy_seq)))
 
 
 if __name__ == "__main__":
