@@ -1,4 +1,4 @@
-"""Two checks of the per-point errors on the shared fr1 frames (quoted in docs/derivation.md).
+"""Three checks of the per-point errors on the shared fr1 frames (quoted in docs/derivation.md).
 
     python studies/depth_pattern.py [--data ../shared/data]
 
@@ -15,10 +15,11 @@
    frames 1, 2 or 3 apart after the pair's own estimate (robust RMS per axis, px), by the span and
    by the ORB octave.
 3. The per-point depth noise at larger image displacements: the same pairs' residuals along the
-   reference ray after the pair's own estimate, in units of the Kinect model's ``sigma_Z`` (robust
-   s.d.), by the point's displacement between the two images and by the larger of the two frames'
-   stamped colour-depth offsets; and their mean square over the per-point model's variance along
-   the ray (both frames' covariances, as the estimator weighs them).
+   reference ray after the pair's own estimate, in units of ``sigma_K = 1.425e-3 Z^2`` (Khoshelham
+   and Elberink's Kinect depth noise as a yardstick; robust s.d.), by the point's displacement
+   between the two images and by the larger of the two frames' stamped colour-depth offsets; and
+   their mean square over the per-point model's variance along the ray (both frames' covariances,
+   as the estimator weighs them).
 """
 
 from __future__ import annotations
@@ -117,30 +118,32 @@ def explained(train: np.ndarray, tests: list[np.ndarray], kind: str, power: int,
     return out
 
 
-def span_pairs(seq: TumSequence):
+def span_pairs(seq: TumSequence) -> list:
     """Per pair of frames 1, 2 and 3 apart with enough inliers: ``(k, i, pairs, frames, X, R)``,
     ``X`` the current points moved into the reference frame by the pair's own estimate, ``R`` its
     rotation."""
     vo, frames = prepared(seq)
+    out = []
     for k in (1, 2, 3):
         for i in range(k, len(frames)):
             p = associate_frames(frames[i - k], frames[i], vo.config.frontend, camera=vo.camera)
             if p.num_inliers < vo.config.frontend.min_pairs:
                 continue
             M = estimate_relative_pose(p.X_ref, p.X_cur, p.Q_ref, p.Q_cur).pose.matrix()
-            yield k, i, p, frames, p.X_cur @ M[:3, :3].T + M[:3, 3], M[:3, :3]
+            out.append((k, i, p, frames, p.X_cur @ M[:3, :3].T + M[:3, 3], M[:3, :3]))
+    return out
 
 
 def robust_sd(x: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x))))
 
 
-def pixel_residuals(seq: TumSequence) -> list[str]:
+def pixel_residuals(seq: TumSequence, pairs: list) -> list[str]:
     cam = VisualOdometry(seq.camera).camera
     lines = ["| frames apart | points | robust RMS per axis (px) | octave 0 | octave 3 | octave 7 |",
              "|---|---|---|---|---|---|"]
     res, octave, span = [], [], []
-    for k, i, p, frames, X, _ in span_pairs(seq):
+    for k, i, p, frames, X, _ in pairs:
         uv = cam.undistort(p.uv_ref)
         res.append(np.hypot(cam.fx * X[:, 0] / X[:, 2] + cam.cx - uv[:, 0],
                             cam.fy * X[:, 1] / X[:, 2] + cam.cy - uv[:, 1]))
@@ -158,13 +161,13 @@ def pixel_residuals(seq: TumSequence) -> list[str]:
     return lines
 
 
-def depth_residuals(seq: TumSequence) -> list[str]:
+def depth_residuals(seq: TumSequence, pairs: list) -> list[str]:
     """Robust s.d. of the residuals along the reference ray after each pair's own estimate, in
-    units of the Kinect model's sigma_Z (1.425e-3 Z^2 at the two depths' mean), by the point's image
+    units of sigma_K = 1.425e-3 Z^2 (Z the two depths' mean), by the point's image
     displacement and the pair's larger stamped colour-depth offset."""
     offset = np.abs(np.asarray(seq.depth_timestamps) - np.asarray(seq.timestamps))
     rows = []
-    for k, i, p, _, X, R in span_pairs(seq):
+    for k, i, p, _, X, R in pairs:
         ray = p.X_ref / np.linalg.norm(p.X_ref, axis=1, keepdims=True)
         z = 0.5 * (p.X_cur[:, 2] + p.X_ref[:, 2])
         r = np.sum((X - p.X_ref) * ray, axis=1)
@@ -173,7 +176,7 @@ def depth_residuals(seq: TumSequence) -> list[str]:
                                      np.full(len(X), 1e3 * max(offset[i], offset[i - k]))]))
     r, model, disp, off = np.vstack(rows).T
     bands = ((0, 5), (5, 12), (12, np.inf))
-    lines = ["| image displacement (px) | points | robust s.d. (sigma_Z) | offset below 5 ms | 5-12 ms | above 12 ms "
+    lines = ["| image displacement (px) | points | robust s.d. (sigma_K) | offset below 5 ms | 5-12 ms | above 12 ms "
              "| mean square over the point model's variance |", "|---|---|---|---|---|---|---|"]
     for lo, hi in ((0, 30), (30, 50), (50, 80), (80, np.inf)):
         m = (disp >= lo) & (disp < hi)
@@ -205,9 +208,10 @@ def main() -> None:
                       + " / ".join(f"{x:.1f}" for x in fb) + " |")
         print(f"\n({len(a)} / {len(b)} / {len(desk)} points)\n\nReprojection residuals after each pair's own estimate, "
               "fr1_rpy:\n")
-        print("\n".join(pixel_residuals(rpy_seq)))
+        pairs = span_pairs(rpy_seq)
+        print("\n".join(pixel_residuals(rpy_seq, pairs)))
         print("\nResiduals along the ray after each pair's own estimate (frames 1, 2 and 3 apart), fr1_rpy:\n")
-        print("\n".join(depth_residuals(rpy_seq)))
+        print("\n".join(depth_residuals(rpy_seq, pairs)))
 
 
 if __name__ == "__main__":

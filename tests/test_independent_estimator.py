@@ -45,3 +45,24 @@ def test_opencv_pairs_are_T_ref_cur(fr1_desk_dir):
     # the frames move 1-3 cm and 1-3 deg apart; the estimate is within a few mm and tenths of a degree
     assert np.degrees(np.abs(err[:, :3])).max() < 1.0 and np.abs(err[:, 3:]).max() < 0.01
     assert np.linalg.norm(flipped, axis=1).mean() > 3 * np.linalg.norm(err, axis=1).mean()
+
+
+def test_persistence_ratios_count_only_chains_of_consecutive_pairs():
+    study = _study()
+    rng = np.random.default_rng(3)
+    n, w = 40, 5
+    true = np.array([np.eye(4) for _ in range(n)])
+    for T in true:
+        T[:3, 3] = rng.normal(scale=0.01, size=3)
+    est = true.copy()
+    est[:, 0, 3] += 1e-3  # one error repeated in every pair: a chain's error is w times a pair's
+    ends = np.arange(1, n + 1)
+    assert study.persistence(est, true, ends, w) == pytest.approx(w, rel=1e-6)
+    errors = np.tile([1e-3, 0.0, 0.0], (n, 1))
+    assert study.persistence_of_sums(errors, ends, w) == pytest.approx(w)
+    alternating = errors * np.where(np.arange(n) % 2, 1.0, -1.0)[:, None]  # each pair undoes the last
+    assert study.persistence_of_sums(alternating, ends, w) == pytest.approx(1 / w)
+    # a gap in the end frames: no window across it
+    gapped = np.concatenate([np.arange(1, 4), np.arange(10, 10 + n - 3)])
+    assert len(study._windows(gapped, w)) == n - 3 - w + 1
+    assert np.isnan(study.persistence(est[:w + 1], true[:w + 1], gapped[:w + 1] * 3, w))
