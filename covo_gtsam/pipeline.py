@@ -232,7 +232,7 @@ def _load_frame(vo: VisualOdometry, load, i: int, depth_offset: float = 0.0) -> 
 
 
 def run_sequence(
-    seq: TumSequence,
+    seq: TumSequence | str | os.PathLike,
     out_dir: str | os.PathLike,
     config: OdometryConfig | None = None,
     camera: Camera | str | None = None,
@@ -244,6 +244,8 @@ def run_sequence(
 ) -> RunResult:
     """Run :class:`VisualOdometry` over ``seq`` and write the results folder.
 
+    ``seq`` is a decoded sequence (:class:`TumSequence`, :class:`~covo_gtsam.datasets.rosbag.RosbagSequence`)
+    or the path of a TUM folder or a ROS bag (read with the default topics), as ``covo run`` takes it.
     ``camera`` (a :class:`Camera` or preset name) overrides ``seq.camera``; ``max_frames`` (an
     integer >= 1, or None for all) limits the frames processed; ``bag_out`` (``"ros1"``,
     ``"ros2"`` or None) also writes the odometry as a ROS bag.
@@ -256,11 +258,19 @@ def run_sequence(
     The folder is locked while the run writes into it.
 
     Raises:
-        ConfigError: an invalid ``max_frames``, ``camera`` or ``config``, or an empty ``out_dir``.
-        DatasetError: the output folder cannot be written, or another run is writing into it.
+        ConfigError: an invalid ``max_frames``, ``camera`` or ``config``, an empty ``out_dir``, or a
+            ``seq`` that is neither a sequence nor a path.
+        DatasetError: ``seq``'s path is no readable sequence, the output folder cannot be written, or
+            another run is writing into it.
     """
     if max_frames is not None:
         check_int("max_frames", max_frames, 1)
+    if isinstance(seq, (str, os.PathLike)):
+        from .datasets.rosbag import RosbagSequence, is_bag
+
+        seq = RosbagSequence(seq) if is_bag(seq) else TumSequence(seq)
+    elif not hasattr(seq, "camera") or not hasattr(seq, "timestamps"):
+        raise ConfigError(f"run_sequence needs a sequence (e.g. TumSequence) or its path, got {type(seq).__name__}")
     config = config or OdometryConfig()
     vo = VisualOdometry(seq.camera if camera is None else camera, config)
     out = check_output_dir(out_dir)

@@ -343,6 +343,21 @@ def test_bad_frame_is_lost_and_run_continues(small_seq, tmp_path, kind):
     assert len(stamps) == N_FRAMES - 1
 
 
+def test_run_sequence_takes_a_path_as_covo_run_does(small_seq, tmp_path):
+    from covo_gtsam.errors import ConfigError, DatasetError
+    from covo_gtsam.pipeline import run_sequence
+
+    kw = dict(max_frames=4, plots=False, progress=False)
+    by_path = run_sequence(str(small_seq), tmp_path / "a", **kw)
+    by_sequence = run_sequence(TumSequence(small_seq), tmp_path / "b", **kw)
+    assert [s.status for s in by_path.steps] == [s.status for s in by_sequence.steps]
+    assert (tmp_path / "a" / "relative.txt").read_text() == (tmp_path / "b" / "relative.txt").read_text()
+    with pytest.raises(ConfigError, match="needs a sequence"):
+        run_sequence(42, tmp_path / "c", **kw)
+    with pytest.raises(DatasetError):
+        run_sequence(tmp_path / "no such folder", tmp_path / "d", **kw)
+
+
 @pytest.mark.parametrize("max_frames", [-5, 0, 2.5, True, "3"])
 def test_run_sequence_rejects_bad_max_frames(small_seq, tmp_path, max_frames):
     from covo_gtsam.datasets.tum import TumSequence
