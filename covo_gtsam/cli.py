@@ -73,6 +73,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"covo: error: no frame could be tracked: all {m['frames']} frames are lost (first reason: {first}); "
               f"see metrics.json", file=sys.stderr)
         return EXIT_NOTHING_TRACKED
+    from .steps import StepStatus
+
+    if m["frames"] > 1 and not any(s.status == StepStatus.RELATIVE_POSE for s in result.steps):
+        first = m["lost"][0]["reason"] if m["lost"] else "none was lost"
+        print(f"covo: error: no relative pose could be estimated between any two of the {m['frames']} frames "
+              f"(first lost frame: {first}); relative.txt is empty; see metrics.json", file=sys.stderr)
+        return EXIT_NOTHING_TRACKED
     return 0
 
 

@@ -39,7 +39,7 @@ from .choices import MotionModel, RobustKernel, Weighting
 from .errors import ConfigError, InputError
 from .frontend import FrontendConfig
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
-from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, check_settings, choice, declared, flag,
+from .validation import (MAX_DEPTH_SCALE, MAX_PIXEL_SIGMA, MAX_SCALE, MIN_DEPTH_SCALE, MIN_PIXEL_SIGMA, MIN_SCALE, check_settings, choice, declared, flag,
                          integer, number, range_text)
 
 #: Longest time (s) between a frame and its reference frame that is still matched: a longer gap is
@@ -91,7 +91,8 @@ class EstimatorConfig:
     weighting: Weighting = choice(Weighting.CONSISTENT, "weighting of the residuals: consistent, or the thesis's "
                                   "(4.16)", Weighting)
     scale: float = number(1.0, "the thesis's phi: multiplies each pair's point-transfer covariance inside the "
-                          "estimator (keep 1; correlation_factor does that job)", "factor", maximum=MAX_SCALE)
+                          "estimator (keep 1; correlation_factor does that job)", "factor", minimum=MIN_SCALE,
+                          maximum=MAX_SCALE)
     robust: RobustKernel | None = choice(None, "robust re-weighting of the residuals (none: plain least squares)",
                                          RobustKernel, optional=True)
     variance_factor: bool = flag(False, "multiply the covariance by the a-posteriori variance factor")
@@ -115,7 +116,8 @@ class SensorConfig:
 
     section: ClassVar[str] = "sensor"
 
-    depth_scale: float = number(5000.0, "raw integer depth values per metre (TUM: 5000)", "raw/m", maximum=1e9)
+    depth_scale: float = number(5000.0, "raw integer depth values per metre (TUM: 5000)", "raw/m",
+                                minimum=MIN_DEPTH_SCALE, maximum=MAX_DEPTH_SCALE)
     frame_interval_s: float = number(1.0 / 30.0, "the camera's nominal frame period", "s", minimum=1e-4,
                                      maximum=1e3)
     rolling_shutter_s: float = number(0.025, "colour readout time from the top row to the bottom row; 0 turns "
@@ -125,7 +127,7 @@ class SensorConfig:
     depth_time_compensation: bool = flag(False, "move each point along its ray to its colour image's time "
                                          "(depth images stamped apart from the colour images)")
     correlation_factor: float = number(1.0, "kappa: multiplies the per-point covariance, for errors shared by the "
-                                       "points", "factor", maximum=MAX_SCALE)
+                                       "points", "factor", minimum=MIN_SCALE, maximum=MAX_SCALE)
     frame_sigma_rot_deg: float = number(0.0956, "per-axis rotation error common to a pair, per frame interval "
                                         "(variance grows k times over k intervals)", "deg", "non-negative",
                                         maximum=180.0)

@@ -64,6 +64,19 @@ class _TwistSpan(NamedTuple):
     intervals: int
 
 
+def _positive_definite(C: np.ndarray) -> bool:
+    """True for a finite, symmetric positive-definite covariance whose inverse is finite too."""
+    if not np.all(np.isfinite(C)):
+        return False
+    try:
+        L = np.linalg.cholesky(0.5 * (C + C.T))
+    except np.linalg.LinAlgError:
+        return False
+    L_inv = np.linalg.inv(L)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return bool(np.all(np.isfinite(L_inv.T @ L_inv)))  # the information a back end is given
+
+
 class VisualOdometry(DeprecatedStepAccess):
     """Keyframe-based (or frame-to-frame) RGB-D odometry with per-step covariance.
 
@@ -301,6 +314,9 @@ class VisualOdometry(DeprecatedStepAccess):
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
             step.reason = str(exc)
+            return step
+        if not _positive_definite(step.covariance):  # no information a back end could use
+            step.reason = "the pair's covariance is not finite and positive definite"
             return step
         step.status = StepStatus.RELATIVE_POSE
         self._integrity_check(step, res.pose, X_ref, X_cur, pairs)

@@ -40,7 +40,8 @@ from .covariance import tangent_to_ros
 from .errors import ConfigError, DatasetError
 from .geometry import matrix_to_quat
 
-__all__ = ["BAG_FORMATS", "OdometryBagWriter", "bag_output_path", "require_rosbags"]
+__all__ = ["BAG_FORMATS", "OdometryBagWriter", "bag_output_path", "is_bag_output", "remove_bag_outputs",
+           "require_rosbags"]
 
 BAG_FORMATS = ("ros1", "ros2")
 ODOMETRY_TOPIC = "/covo/odometry"
@@ -66,6 +67,34 @@ def bag_output_path(out_dir: str | os.PathLike, fmt: str) -> Path:
     return Path(out_dir) / ("odometry.bag" if fmt == "ros1" else "odometry")
 
 
+def is_bag_output(path: Path) -> bool:
+    """True for what a bag output of covo can be: a ROS 1 bag file (its ``#ROSBAG V2.0`` header)
+    or a ROS 2 bag folder (its ``metadata.yaml``); anything else at that path is the user's."""
+    if path.is_symlink():
+        return False
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    if path.is_file():
+        with open(path, "rb") as f:
+            return f.read(13) == b"#ROSBAG V2.0\n"
+    return False
+
+
+def remove_bag_outputs(out_dir: str | os.PathLike, formats: tuple[str, ...] = BAG_FORMATS) -> None:
+    """Remove earlier bags of ``formats`` from the results folder (bags only: another file or
+    folder of that name raises), so the folder describes one run.
+
+    Raises:
+        DatasetError: ``OUT/odometry.bag`` or ``OUT/odometry`` exists and is not a bag.
+    """
+    for fmt in formats:
+        path = bag_output_path(out_dir, fmt)
+        if is_bag_output(path):
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        elif path.exists() or path.is_symlink():
+            raise DatasetError(f"{path}: exists and is not a bag written by covo; remove it first")
+
+
 def _stamp(t: float) -> tuple[int, int]:
     ns = int(round(float(t) * 1e9))
     return ns // 1_000_000_000, ns % 1_000_000_000
@@ -85,12 +114,7 @@ class OdometryBagWriter:
         self.fmt = fmt
         self.path = bag_output_path(out_dir, fmt)
         self.camera_frame = camera_frame or "camera"
-        if self.path.is_dir() and (self.path / "metadata.yaml").is_file():
-            shutil.rmtree(self.path)
-        elif self.path.is_file():
-            self.path.unlink()
-        elif self.path.exists():
-            raise DatasetError(f"{self.path}: exists and is not a bag written by covo; remove it first")
+        remove_bag_outputs(out_dir, (fmt,))
         if fmt == "ros1":
             from rosbags.rosbag1 import Writer
 

@@ -22,9 +22,11 @@ import numpy as np
 from .errors import ConfigError
 
 #: Sanity limits shared by the configurations and the command line: beyond them the models are
-#: meaningless and float arithmetic overflows. Pixel noise in pixels, covariance scale phi.
+#: meaningless and float arithmetic overflows. Pixel noise in pixels, covariance scales (phi,
+#: kappa) as factors, depth units per metre.
 MIN_PIXEL_SIGMA, MAX_PIXEL_SIGMA = 0.01, 1e4
-MAX_SCALE = 1e6
+MIN_SCALE, MAX_SCALE = 1e-6, 1e6
+MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1e-3, 1e9
 
 
 def is_int(value) -> bool:

@@ -242,3 +242,29 @@ def test_run_never_writes_nan_or_inf(fuzz_base, tmp_path, capsys, start, steps, 
     assert m is not None and 1 <= m["frames"] <= FUZZ_FRAMES
     summary = captured.out.splitlines()[0]
     assert not re.search(r"\b(nan|inf)\b", summary, re.IGNORECASE), summary
+
+
+def test_a_covariance_without_information_loses_the_pair(sample_dir, tmp_path, monkeypatch):
+    from covo_gtsam.config import OdometryConfig
+    from covo_gtsam.odometry import _positive_definite
+    from covo_gtsam.pipeline import run_sequence
+
+    assert _positive_definite(np.diag([1e-6] * 3 + [1e-4] * 3))
+    for bad in (np.full((6, 6), np.nan), np.zeros((6, 6)), np.diag([1.0] * 5 + [-1e-9]), np.eye(6) * 1e-320):
+        assert not _positive_definite(bad)
+    monkeypatch.setattr(OdometryConfig, "sensor_covariance", lambda self, C, dt, bases: np.eye(6) * 1e-320)
+    run = run_sequence(str(sample_dir), tmp_path / "o", max_frames=3, plots=False, progress=False)
+    lost = [s for s in run.steps if s.status == "lost"]
+    assert len(lost) == 2 and all("positive definite" in s.reason for s in lost)
+    assert "nan" not in (tmp_path / "o" / "graph.g2o").read_text().lower()
+
+
+@pytest.mark.parametrize("setting", [("sensor", "correlation_factor"), ("estimator", "scale"),
+                                     ("sensor", "depth_scale")])
+def test_covariance_and_depth_scales_near_zero_are_rejected(setting):
+    from covo_gtsam.config import OdometryConfig
+    from covo_gtsam.errors import ConfigError
+
+    section, name = setting
+    with pytest.raises(ConfigError, match=name):
+        OdometryConfig().replace(**{section: {name: 1e-310}})

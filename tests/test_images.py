@@ -120,3 +120,25 @@ def test_tum_sequence_decoding_errors_name_the_file(small_sample):
     Path(seq.rgb_paths[2]).unlink()
     with pytest.raises(InputError, match="does not exist"):
         seq.loader()(2)
+
+
+@pytest.mark.parametrize("what", ["rgb", "depth"])
+def test_a_png_declaring_a_huge_image_is_refused_before_decoding(small_sample, monkeypatch, what):
+    import zlib
+
+    seq = TumSequence(small_sample(2))
+    w = h = 16000  # 768 MB of RGB pixels declared in a file of a few hundred kB
+    kind, step = (2, 3) if what == "rgb" else (0, 2)
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return len(data).to_bytes(4, "big") + tag + data + zlib.crc32(tag + data).to_bytes(4, "big")
+
+    ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([8 if what == "rgb" else 16, kind, 0, 0, 0])
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(bytes(50 * (1 + w * step)), 9))
+           + chunk(b"IEND", b""))
+    Path(seq.rgb_paths[1] if what == "rgb" else seq.depth_paths[1]).write_bytes(png)
+    decoded = []
+    monkeypatch.setattr(cv2, "imread", lambda *a, **k: decoded.append(a) or None)
+    with pytest.raises(InputError, match=r"is 16000x16000, (expected|the camera's is) 640x480"):
+        seq.load(1)
+    assert not decoded

@@ -165,6 +165,20 @@ def test_every_frame_lost_is_loud_with_exit_code_3(small_sample, tmp_path, capsy
     assert metrics["tracked_frames"] == 0 and len(metrics["lost"]) == 3
 
 
+def test_no_relative_pose_at_all_is_loud_with_exit_code_3(small_sample, tmp_path, capsys):
+    import cv2
+
+    seq, out = small_sample(4), tmp_path / "out"
+    for png in sorted((seq / "depth").glob("*.png"))[1:]:  # only the first frame has depth
+        cv2.imwrite(str(png), np.zeros((480, 640), np.uint16))
+    assert main(["run", str(seq), "--out", str(out), "--quiet", "--no-plots"]) == cli.EXIT_NOTHING_TRACKED
+    captured = capsys.readouterr()
+    assert "no relative pose could be estimated" in captured.err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["tracked_frames"] == 1 and len(metrics["lost"]) == 3
+    assert not [line for line in (out / "relative.txt").read_text().splitlines() if not line.startswith("#")]
+
+
 @pytest.mark.parametrize("exc", [KeyboardInterrupt(), "import"])
 def test_ctrl_c_during_start_up_is_one_line(monkeypatch, capsys, exc):
     def interrupted():

@@ -383,3 +383,22 @@ def test_evaluate_takes_bags_and_folders(fr1_desk_dir, tmp_path, capsys):
     # the bag's frames differ from the folder's only by the grey conversion: close, not equal
     a, b = float(rows["desk"]["rpe1_m"]), float(rows[fr1_desk_dir.name]["rpe1_m"])
     assert abs(a - b) < 0.5 * b
+
+
+def test_bag_output_never_replaces_the_users_files(sample_dir, tmp_path, capsys):
+    out = tmp_path / "o"
+    out.mkdir()
+    args = ["run", str(sample_dir), "--out", str(out), "--max-frames", "3", "--quiet", "--no-plots"]
+    for fmt, name in (("ros1", "odometry.bag"), ("ros2", "odometry")):
+        (out / name).write_text("the user's notes")
+        assert main([*args, "--bag-out", fmt]) == 2
+        assert "is not a bag written by covo" in capsys.readouterr().err
+        assert (out / name).read_text() == "the user's notes"
+        (out / name).unlink()
+    # a bag of one format goes when the next run writes the other one, or none: one run per folder
+    assert main([*args, "--bag-out", "ros2"]) == 0 and (out / "odometry" / "metadata.yaml").is_file()
+    assert main([*args, "--bag-out", "ros1"]) == 0
+    assert (out / "odometry.bag").read_bytes().startswith(b"#ROSBAG V2.0") and not (out / "odometry").exists()
+    (out / "odometry").write_text("the user's notes")  # not asked for a ros2 bag: left alone
+    assert main(args) == 0
+    assert not (out / "odometry.bag").exists() and (out / "odometry").read_text() == "the user's notes"

@@ -82,3 +82,16 @@ def test_unreachable_scheduler_and_bad_sequence_are_one_line_exit_2(fr1_desk_dir
     assert main(["evaluate", str(fr1_desk_dir), str(tmp_path), "--out", str(tmp_path / "c"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "neither a TUM sequence folder" in err
+
+
+@pytest.mark.parametrize("address", ["notaurl", "http://host:8786", "inproc://x", "tcp://[::1", "tcp://host:port"])
+def test_malformed_scheduler_address_is_refused_before_connecting(sample_dir, tmp_path, capsys, monkeypatch,
+                                                                   address):
+    distributed = pytest.importorskip("dask.distributed")
+    tried = []
+    monkeypatch.setattr(distributed, "Client", lambda *a, **k: tried.append(a))
+    assert main(["evaluate", str(sample_dir), "--out", str(tmp_path / "a"), "--scheduler", address,
+                 "--connect-timeout", "5", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a scheduler address" in err and "Traceback" not in err
+    assert not tried  # refused before any connection attempt

@@ -35,14 +35,36 @@ def _check_file(path: str | os.PathLike, what: str) -> str:
     return p
 
 
-def load_grey(path: str | os.PathLike) -> np.ndarray:
+def _png_size(path: str) -> tuple[int, int] | None:
+    """``(height, width)`` from a PNG file's header (IHDR), None for any other file."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big")
+
+
+def _check_size(path: str, shape: tuple[int, int] | None, what: str, expected: str = "expected") -> None:
+    """A PNG's size from its header against the expected ``(height, width)``, before any decoding
+    (a small file can declare a huge image)."""
+    size = None if shape is None else _png_size(path)
+    if size is not None and size != tuple(shape):
+        raise InputError(f"{path}: {what} is {size[1]}x{size[0]}, {expected} {shape[1]}x{shape[0]}")
+
+
+def load_grey(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
     """Grey uint8 image (H, W) of an image file (``cv2.IMREAD_GRAYSCALE``; plain PNG files through
-    :func:`_png_grey` when ``isal`` is installed, the same image).
+    :func:`_png_grey` when ``isal`` is installed, the same image). ``shape``: the camera's
+    ``(height, width)``, checked from a PNG's header before decoding (None: any size).
 
     Raises:
-        InputError: the file is missing, unreadable or corrupt.
+        InputError: the file is missing, unreadable or corrupt, or (a PNG) not of ``shape``.
     """
     p = _check_file(path, "image")
+    _check_size(p, shape, "image", "the camera's is")
     img = _png_grey(p)
     if img is None:
         img = cv2.imread(p, cv2.IMREAD_GRAYSCALE)
@@ -179,6 +201,7 @@ def load_depth(
     if not (depth_scale > 0 and math.isfinite(depth_scale)):
         raise InputError(f"depth_scale must be a positive number, got {depth_scale!r}")
     p = _check_file(path, "depth")
+    _check_size(p, shape, "depth image")
     found = _png_bytes(p, ((0, 16),))
     if found is None:
         raw = cv2.imread(p, cv2.IMREAD_UNCHANGED)
