@@ -151,9 +151,38 @@ def write_tum_trajectory(path: str | os.PathLike, stamps: np.ndarray, poses: np.
 
 
 def load_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Stamps (N,) in s and poses (N, 4, 4) of a TUM trajectory file (also ``groundtruth.txt``)."""
+    """Stamps (N,) in s and poses (N, 4, 4) of a TUM trajectory file (also ``groundtruth.txt``), in
+    the file's order, one pose per stamp.
+
+    A line repeating an earlier line's stamp and pose is dropped; one repeating the stamp with a
+    different pose raises :class:`DatasetError` naming the file and both lines, as do malformed lines.
+    """
     rows, line_nos = _load_rows(path, _TUM_COLS, "timestamp tx ty tz qx qy qz qw")
-    return rows[:, 0].copy(), _poses_from_rows(path, rows, line_nos, 1)
+    stamps, poses = rows[:, 0].copy(), _poses_from_rows(path, rows, line_nos, 1)
+    keep = _first_of_each_stamp(path, stamps, poses, line_nos)
+    return stamps[keep], poses[keep]
+
+
+def _first_of_each_stamp(p: str | os.PathLike, stamps: np.ndarray, poses: np.ndarray, line_nos: np.ndarray
+                         ) -> np.ndarray:
+    """Mask (N,) of the lines to keep: the first line of each stamp (s). A later line with the same
+    stamp and pose (4x4, exactly equal) is a repeat; one with another pose raises :class:`DatasetError`."""
+    order = np.argsort(stamps, kind="stable")  # stable: lines of one stamp stay in file order
+    s = stamps[order]
+    repeat = np.flatnonzero(s[1:] == s[:-1]) + 1  # positions (sorted) equal to the one before
+    keep = np.ones(stamps.shape[0], bool)
+    if repeat.size == 0:
+        return keep
+    starts = np.r_[True, s[1:] != s[:-1]]
+    first = order[np.maximum.accumulate(np.where(starts, np.arange(s.shape[0]), 0))[repeat]]
+    later = order[repeat]
+    conflict = (poses[later] != poses[first]).any(axis=(1, 2))
+    if conflict.any():
+        k = np.flatnonzero(conflict)[np.argmin(line_nos[later[conflict]])]
+        raise DatasetError(f"{p}:{line_nos[later[k]]}: timestamp {float(stamps[later[k]])!r} repeats the one of "
+                           f"line {line_nos[first[k]]} with a different pose (a trajectory has one pose per instant)")
+    keep[later] = False
+    return keep
 
 
 def format_relative_line(t_ref: float, t_cur: float, T: np.ndarray, cov: np.ndarray, quality: float | None = None

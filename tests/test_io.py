@@ -129,6 +129,20 @@ def test_load_errors_name_file_and_line(tmp_path):
     assert s.shape == (0,) and P.shape == (0, 4, 4)
 
 
+def test_trajectory_has_one_pose_per_stamp(tmp_path):
+    """Exact repeats of a stamp and pose are dropped (the file's order kept); the first line that
+    repeats a stamp with another pose is named, with the line it repeats."""
+    p = tmp_path / "t.txt"
+    p.write_text("# t tx ty tz qx qy qz qw\n2.0 1 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n2.00 1 0 0 0 0 0 1\n"
+                 "1.0 0 0 0 0 0 0 -1\n3.0 0 0 0 0 0 0 1\n")
+    s, P = load_tum_trajectory(p)
+    assert s.tolist() == [2.0, 1.0, 3.0] and P[:, 0, 3].tolist() == [1.0, 0.0, 0.0]
+    with open(p, "a") as f:
+        f.write("1.0 0 0 0.001 0 0 0 1\n2.0 1 0 0 0 0 0 1\n2.0 1 0 0 0 1 0 0\n")  # lines 7-9
+    with pytest.raises(DatasetError, match=r"t\.txt:7: timestamp 1\.0 repeats the one of line 3 with a different"):
+        load_tum_trajectory(p)
+
+
 def test_write_json_plain_and_atomic(tmp_path):
     path = tmp_path / "m.json"
     path.write_text("old")

@@ -6,6 +6,7 @@ import json
 import os
 
 import cv2
+import numpy as np
 import pytest
 
 from covo_gtsam.cli import main
@@ -92,3 +93,57 @@ def test_configuration_file_with_a_byte_order_mark(tmp_path, suffix, text):
     path = tmp_path / f"config{suffix}"
     path.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode("utf-8"))
     assert load_config(str(path)).noise.pixel_sigma == 3.0
+
+
+def rounded_stamps(path, digits: int) -> None:
+    """Rewrite the stamps of a ``timestamp filename`` list rounded to ``digits`` decimals, as a tool
+    that writes too few digits leaves them."""
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(ln if ln.startswith("#") else f"{round(float(ln.split()[0]), digits):.{digits}f} "
+                              f"{ln.split()[1]}" for ln in lines) + "\n")
+
+
+@pytest.mark.parametrize("names, digits", [(("rgb.txt", "depth.txt"), 1), (("rgb.txt", "depth.txt"), 0),
+                                           (("depth.txt",), 1)])
+def test_stamps_written_with_too_few_digits_are_an_error(small_sample, tmp_path, capsys, names, digits):
+    """Frames 33 ms apart whose stamps were rounded share them: the run stops with the first repeat's
+    file and line instead of pairing frames with other frames' depth images."""
+    seq = small_sample(5)
+    for name in names:
+        rounded_stamps(seq / name, digits)
+    out = tmp_path / "out"
+    assert main(["run", str(seq), "--out", str(out), "--quiet", "--no-plots"]) == 2
+    line = one_error_line(capsys)
+    assert f"{seq / names[0]}:" in line and "repeats the one of line" in line
+    assert not (out / "trajectory.txt").exists()
+
+
+def test_groundtruth_with_repeated_lines(small_sample, tmp_path, capsys):
+    """Every ground-truth line written twice: the run and the reference's own noise are those of the
+    plain file; a repeat with a pose 1 m away stops the run naming the file and line."""
+    from covo_gtsam.reference_noise import reference_jitter
+
+    seq = small_sample(5)
+    assert main(["run", str(seq), "--out", str(tmp_path / "plain"), "--quiet", "--no-plots"]) == 0
+    plain = TumSequence(seq)
+    gt = seq / "groundtruth.txt"
+    text = gt.read_text()
+    gt.write_text("".join(ln if ln.startswith("#") else ln + ln for ln in text.splitlines(keepends=True)))
+    doubled = TumSequence(seq)
+    for a, b in zip(doubled.gt_samples, plain.gt_samples):
+        np.testing.assert_array_equal(a, b)
+    jitter = reference_jitter(*doubled.gt_samples)
+    assert jitter is not None
+    np.testing.assert_equal(jitter, reference_jitter(*plain.gt_samples))
+    assert main(["run", str(seq), "--out", str(tmp_path / "doubled"), "--quiet", "--no-plots"]) == 0
+    metrics = [json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("plain", "doubled")]
+    for key in ("ate", "reference_jitter"):
+        assert metrics[1][key] == metrics[0][key] and metrics[0][key] is not None
+    lines = text.splitlines()
+    no = next(i for i, ln in enumerate(lines) if not ln.startswith("#")) + 1
+    v = lines[no - 1].split()
+    lines.insert(no, " ".join([v[0], f"{float(v[1]) + 1.0:.4f}"] + v[2:]))
+    gt.write_text("\n".join(lines) + "\n")
+    assert main(["run", str(seq), "--out", str(tmp_path / "conflict"), "--quiet", "--no-plots"]) == 2
+    line = one_error_line(capsys)
+    assert f"{gt}:{no + 1}:" in line and f"line {no} with a different pose" in line

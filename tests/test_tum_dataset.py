@@ -167,6 +167,25 @@ def test_rpy_head240(fr1_rpy_dir):
     assert associate(rgb_t, dep_t) == benchmark_associate(rgb_t.tolist(), dep_t.tolist(), 0.02)
 
 
+@pytest.mark.realdata
+def test_shared_sequences_load_every_listed_line(shared_data_dir):
+    """The shared TUM sequences have no repeated stamps: every line of rgb.txt, depth.txt and
+    groundtruth.txt is read as it is written, and no image serves two frames."""
+    folders = sorted(p for p in (shared_data_dir / "tum").iterdir() if (p / "rgb.txt").is_file())
+    assert folders
+    for folder in folders:
+        seq = TumSequence(folder)
+        for name in ("rgb.txt", "depth.txt"):
+            rows = [ln.split() for ln in (folder / name).read_text().splitlines() if ln[:1].isdigit()]
+            stamps, names = read_file_list(folder / name)
+            assert stamps.tolist() == [float(r[0]) for r in rows] and names == [r[1] for r in rows]
+        assert len(set(seq.rgb_paths)) == len(set(seq.depth_paths)) == len(seq)
+        assert len(seq) + len(seq.unassociated) == len(read_file_list(folder / "rgb.txt")[0])
+        raw = np.loadtxt(folder / "groundtruth.txt")
+        np.testing.assert_array_equal(seq.gt_samples[0], raw[:, 0])
+        np.testing.assert_allclose(seq.gt_samples[1][:, :3, 3], raw[:, 1:4])
+
+
 # ---- errors ------------------------------------------------------------------------------------
 
 
@@ -259,6 +278,50 @@ def test_malformed_groundtruth_line(tmp_path):
         f.write("1001.0 0 0 0 0 0 1\n")  # 7 values
     n = len((seq / "groundtruth.txt").read_text().splitlines())
     with pytest.raises(DatasetError, match=rf"groundtruth\.txt:{n}"):
+        TumSequence(seq)
+
+
+@pytest.mark.parametrize("name", ["rgb.txt", "depth.txt"])
+def test_repeated_image_stamp_names_file_and_line(tmp_path, name):
+    """Two images at one instant cannot be told apart by time: an error, not a frame with the wrong depth."""
+    seq = make_sequence(tmp_path)
+    lines = (seq / name).read_text().splitlines()
+    first = next(no for no, ln in enumerate(lines, 1) if ln[:1].isdigit()) + 1  # the second image's line
+    stamp = lines[first - 1].split()[0]
+    lines[first] = f"{stamp} {lines[first].split()[1]}"  # the third image takes the second's stamp
+    (seq / name).write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=rf"{name.replace('.', '[.]')}:{first + 1}: timestamp {stamp} "
+                                           rf"repeats the one of line {first}\b"):
+        TumSequence(seq)
+    lines[first] = f"{float(stamp):.9f} {lines[first].split()[1]}"  # the same instant written otherwise
+    (seq / name).write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=rf"{name.replace('.', '[.]')}:{first + 1}:"):
+        read_file_list(seq / name)
+
+
+def test_repeated_groundtruth_stamp(tmp_path):
+    """A ground-truth stamp repeated with another pose is an error naming both lines; a line repeated
+    exactly (also with the quaternion's sign flipped) is dropped, leaving the samples as they were."""
+    seq = make_sequence(tmp_path)
+    gt = seq / "groundtruth.txt"
+    lines = gt.read_text().splitlines()
+    plain = TumSequence(seq)
+    doubled = []
+    for ln in lines:
+        doubled.append(ln)
+        if not ln.startswith("#"):
+            v = ln.split()
+            doubled.append(" ".join(v[:4] + [f"-{x}" for x in v[4:]]) if len(doubled) % 4 else ln)
+    gt.write_text("\n".join(doubled) + "\n")
+    same = TumSequence(seq)
+    np.testing.assert_array_equal(same.gt_samples[0], plain.gt_samples[0])
+    np.testing.assert_array_equal(same.gt_samples[1], plain.gt_samples[1])
+    np.testing.assert_array_equal(same.groundtruth, plain.groundtruth)
+    v = lines[5].split()
+    lines.insert(6, " ".join([v[0], str(float(v[1]) + 1.0)] + v[2:]))  # line 7: line 6's stamp, 1 m away
+    gt.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=r"groundtruth\.txt:7: timestamp .* repeats the one of line 6 with a "
+                                           r"different pose"):
         TumSequence(seq)
 
 

@@ -46,13 +46,15 @@ class Frame:
 
 
 def read_file_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
-    """Timestamps (N,) and file names of a TUM ``rgb.txt`` / ``depth.txt`` (``timestamp filename`` lines).
+    """Timestamps (N,) in s and file names of a TUM ``rgb.txt`` / ``depth.txt`` (``timestamp filename`` lines).
 
-    ``#`` comment lines and blank lines are skipped; a malformed line raises :class:`DatasetError`
-    naming the file and line number.
+    ``#`` comment lines and blank lines are skipped. A malformed line, or a timestamp that an
+    earlier line already has (two images at one instant: association by time could not tell them
+    apart), raises :class:`DatasetError` naming the file and line number.
     """
     p = Path(path)
     stamps, names = [], []
+    first_line: dict[float, int] = {}
     for no, s in data_lines(p):
         parts = s.split()
         try:
@@ -63,6 +65,10 @@ def read_file_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
                 raise ValueError
         except ValueError:
             raise DatasetError(f"{p}:{no}: expected 'timestamp filename', got {s[:80]!r}") from None
+        if t in first_line:
+            raise DatasetError(f"{p}:{no}: timestamp {parts[0]} repeats the one of line {first_line[t]} (two "
+                               "images at one instant; each image needs its own timestamp)")
+        first_line[t] = no
         stamps.append(t)
         names.append(parts[1])
     return np.array(stamps, dtype=float), names
@@ -188,7 +194,9 @@ class TumSequence:
     frame index) and :meth:`images` (frames in order).
 
     Raises :class:`DatasetError` when the folder, ``rgb.txt`` or ``depth.txt`` is missing, a line
-    is malformed, no frame can be associated, or no associated frame has both of its images.
+    is malformed, a timestamp repeats within ``rgb.txt`` or ``depth.txt`` (or within
+    ``groundtruth.txt`` with a different pose; exactly repeated ground-truth samples are dropped),
+    no frame can be associated, or no associated frame has both of its images.
     """
 
     def __init__(self, path: str | os.PathLike, camera=None, max_dt: float = 0.02, max_gap: float = 0.1,
@@ -236,7 +244,7 @@ class TumSequence:
 
         self.groundtruth: np.ndarray | None = None
         self.gt_valid = np.zeros(len(self.timestamps), bool)
-        #: the ground truth's own samples ``(stamps (M,), T_world,cam (M, 4, 4))``, or None
+        #: the ground truth's own samples ``(stamps (M,) s, T_world,cam (M, 4, 4))``, one per stamp, or None
         self.gt_samples: tuple[np.ndarray, np.ndarray] | None = None
         gt_file = self.path / "groundtruth.txt"
         if gt_file.is_file():
