@@ -16,14 +16,28 @@ Two layouts are read:
 
 Pixel coordinates and distortion follow :class:`~covo_gtsam.camera.Camera` (OpenCV's model,
 distortion of the colour image the depth is registered to). Missing or unknown keys and values
-that are not numbers raise :class:`~covo_gtsam.errors.ConfigError` naming the file.
+that are not numbers raise :class:`~covo_gtsam.errors.ConfigError` naming the file, as do:
+
+* a principal point outside the image (``cx`` not in ``[0, width]``, ``cy`` not in ``[0, height]``);
+* in YAML, a ``camera_matrix`` not of the form ``[fx 0 cx 0 fy cy 0 0 1]`` (skew, a third row other
+  than ``0 0 1``, e.g. a transposed matrix) and ``rows``/``cols`` that do not match the data;
+* a distortion that :meth:`~covo_gtsam.camera.Camera.undistort` cannot invert over the image: on a
+  grid of pixels (edges and corners included, at most 16 px apart) undistorting and distorting
+  again must come back within 0.01 px (a distortion that folds the image, or maps its corners to no
+  undistorted point, fails this; so does one the iterative undistortion does not converge on).
+
+YAML numbers such as ``1e-05`` or ``5.173E2`` (floats to ROS's reader, strings to YAML 1.1's) are
+read as numbers; other strings, NaN and infinities are not.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
+
+import numpy as np
 
 from .camera import Camera
 from .errors import ConfigError
@@ -33,6 +47,10 @@ __all__ = ["load_camera_file", "resolve_camera"]
 
 _REQUIRED = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
 _DIST = ("k1", "k2", "p1", "p2", "k3")
+#: A decimal number written as text: YAML 1.1 reads ``1e-05`` and ``5.173E2`` as strings.
+_DECIMAL = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+#: Largest spacing (pixels) of the grid the distortion is checked on, and the round-trip tolerance (pixels).
+_GRID_PX, _ROUND_TRIP_PX = 16, 0.01
 _YAML_KEYS = {"image_width", "image_height", "camera_name", "camera_matrix", "distortion_model",
               "distortion_coefficients", "rectification_matrix", "projection_matrix", "depth_scale"}
 
@@ -43,19 +61,51 @@ def _read(p: Path) -> dict:
     return read_settings_file(p, "camera file", ("YAML", "TOML", "JSON"))
 
 
-def _number(p: Path, key: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+def _number(p: Path, key: str, value, text: bool = False) -> float:
+    """``value`` as a finite float; with ``text``, a string holding a decimal number is one too."""
+    x = value
+    if text and isinstance(value, str) and _DECIMAL.fullmatch(value.strip()):
+        x = float(value)
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
         raise ConfigError(f"{p}: {key} must be a finite number, got {value!r}")
-    return float(value)
+    return float(x)
 
 
-def _matrix_data(p: Path, data: dict, key: str, size: int | tuple[int, ...]) -> list[float]:
+def _matrix_data(p: Path, data: dict, key: str, size: int | tuple[int, ...],
+                 shape: tuple[int, int] | None = None) -> list[float]:
+    """The numbers of a YAML matrix ``{rows, cols, data}``; ``rows``/``cols``, when given, must match the
+    data (and ``shape``, if set)."""
     m = data.get(key)
     values = m.get("data") if isinstance(m, dict) else None
     sizes = (size,) if isinstance(size, int) else size
     if not isinstance(values, list) or len(values) not in sizes:
         raise ConfigError(f"{p}: {key} needs 'data' with {' or '.join(map(str, sizes))} numbers")
-    return [_number(p, f"{key}.data", v) for v in values]
+    dims = {d: m[d] for d in ("rows", "cols") if d in m}
+    for d, v in dims.items():
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ConfigError(f"{p}: {key}.{d} must be a non-negative integer, got {v!r}")
+    if len(dims) == 2:
+        if dims["rows"] * dims["cols"] != len(values):
+            raise ConfigError(f"{p}: {key} has rows: {dims['rows']}, cols: {dims['cols']} but "
+                              f"{len(values)} data values")
+        if shape is not None and (dims["rows"], dims["cols"]) != shape:
+            raise ConfigError(f"{p}: {key} must be {shape[0]}x{shape[1]}, got rows: {dims['rows']}, "
+                              f"cols: {dims['cols']}")
+    elif dims:
+        raise ConfigError(f"{p}: {key} gives {next(iter(dims))} without {'cols' if 'rows' in dims else 'rows'}")
+    return [_number(p, f"{key}.data", v, text=True) for v in values]
+
+
+def _check_camera_matrix(p: Path, K: list[float]) -> None:
+    """``K`` (row-major) must be ``[fx 0 cx 0 fy cy 0 0 1]``: the camera model has no skew."""
+    if K[6:] != [0.0, 0.0, 1.0]:
+        hint = " (a transposed, column-major matrix?)" if K[2] == K[5] == 0.0 and K[8] == 1.0 else ""
+        raise ConfigError(f"{p}: camera_matrix third row must be [0, 0, 1], got [{K[6]:g}, {K[7]:g}, {K[8]:g}]"
+                          f"{hint}")
+    if K[1] != 0.0:
+        raise ConfigError(f"{p}: camera_matrix skew (data[1]) must be 0, got {K[1]:g}: the camera model has none")
+    if K[3] != 0.0:
+        raise ConfigError(f"{p}: camera_matrix data[3] (row 2, column 1) must be 0, got {K[3]:g}")
 
 
 def _from_yaml(p: Path, data: dict) -> tuple[dict, float | None]:
@@ -65,7 +115,8 @@ def _from_yaml(p: Path, data: dict) -> tuple[dict, float | None]:
     unknown = sorted(set(data) - _YAML_KEYS)
     if unknown:
         raise ConfigError(f"{p}: unknown keys {', '.join(unknown)}")
-    K = _matrix_data(p, data, "camera_matrix", 9)
+    K = _matrix_data(p, data, "camera_matrix", 9, shape=(3, 3))
+    _check_camera_matrix(p, K)
     dist = [0.0] * 5
     if "distortion_coefficients" in data:
         model = data.get("distortion_model", "plumb_bob")
@@ -79,7 +130,7 @@ def _from_yaml(p: Path, data: dict) -> tuple[dict, float | None]:
               "width": data["image_width"], "height": data["image_height"],
               "name": str(data.get("camera_name") or p.stem)}
     scale = data.get("depth_scale")
-    return values, None if scale is None else _number(p, "depth_scale", scale)
+    return values, None if scale is None else _number(p, "depth_scale", scale, text=True)
 
 
 def _from_table(p: Path, data: dict) -> tuple[dict, float]:
@@ -97,12 +148,32 @@ def _from_table(p: Path, data: dict) -> tuple[dict, float]:
     return values, _number(p, "depth_scale", data["depth_scale"])
 
 
+def _check_distortion(p: Path, cam: Camera) -> None:
+    """Undistorting a grid of pixels over the image (edges and corners included) and distorting them
+    again must give them back within ``_ROUND_TRIP_PX``: otherwise the run's undistorted pixels are wrong."""
+    if not cam.has_distortion:
+        return
+    nu, nv = (int(np.ceil((size - 1) / _GRID_PX)) + 1 for size in (cam.width, cam.height))
+    u, v = np.meshgrid(np.linspace(0.0, cam.width - 1, nu), np.linspace(0.0, cam.height - 1, nv))
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)
+    err = np.linalg.norm(cam.distort(cam.undistort(uv)) - uv, axis=1)
+    bad = np.flatnonzero(~(err <= _ROUND_TRIP_PX))  # NaN is bad too
+    if bad.size:
+        i = bad[np.argmax(np.nan_to_num(err[bad], nan=np.inf))]
+        coeffs = " ".join(f"{d:g}" for d in cam.dist)
+        raise ConfigError(f"{p}: distortion k1 k2 p1 p2 k3 = {coeffs} cannot be undistorted over the "
+                          f"{cam.width}x{cam.height} image: pixel ({uv[i, 0]:.0f}, {uv[i, 1]:.0f}) undistorted and "
+                          f"distorted again is {err[i]:.3g} px away")
+
+
 def load_camera_file(path: str | os.PathLike) -> tuple[Camera, float | None]:
     """The camera of a camera file and its depth scale (raw units per metre; None when a ROS YAML
     file gives none). See the module docstring for the layouts.
 
     Raises:
-        ConfigError: unreadable file, missing or unknown keys, invalid values.
+        ConfigError: unreadable file, missing or unknown keys, invalid values (a principal point
+            outside the image, a YAML camera matrix with skew or another third row than 0 0 1, a
+            distortion that cannot be undistorted over the image).
     """
     p = Path(path)
     data = _read(p)
@@ -114,10 +185,15 @@ def load_camera_file(path: str | os.PathLike) -> tuple[Camera, float | None]:
             raise ConfigError(f"{p}: {'image_' if is_yaml else ''}{k} must be a positive integer, got {v!r}")
     if scale is not None and not scale > 0:
         raise ConfigError(f"{p}: depth_scale must be positive, got {scale:g}")
+    for k, n in (("cx", values["width"]), ("cy", values["height"])):
+        if not 0 <= values[k] <= n:
+            raise ConfigError(f"{p}: principal point {k}={values[k]:g} px is outside the image (0 to {n} px)")
     try:
-        return Camera(**values), scale
+        cam = Camera(**values)
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from exc
+    _check_distortion(p, cam)
+    return cam, scale
 
 
 def resolve_camera(value: str | None) -> tuple[Camera | None, float | None]:

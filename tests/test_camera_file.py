@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import sys
 
@@ -129,3 +130,84 @@ def test_yaml_missing_keys_and_unknown_camera(tmp_path, capsys, sample_dir):
     assert main(["run", str(sample_dir), "--out", str(tmp_path / "o"), "--camera", "fr9", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "fr9" in err
+
+
+@pytest.mark.parametrize("content, needle", [
+    ({**FR1, "cx": 5000}, "principal point cx=5000 px is outside the image (0 to 640 px)"),
+    ({**FR1, "cy": -3000}, "principal point cy=-3000 px is outside the image (0 to 480 px)"),
+    ({**FR1, "k1": 1e6, "k3": -1e9}, "cannot be undistorted over the 640x480 image"),
+], ids=["cx", "cy", "distortion"])
+def test_principal_point_and_distortion_that_do_not_fit_the_image_are_rejected(tmp_path, content, needle):
+    f = tmp_path / "cam.json"
+    f.write_text(json.dumps(content))
+    with pytest.raises(ConfigError, match=re.escape(needle)):
+        load_camera_file(f)
+
+
+def test_principal_point_on_the_image_border_and_real_distortions_load(tmp_path):
+    no_dist = {k: v for k, v in FR1.items() if k not in ("k1", "k2", "p1", "p2", "k3")}
+    for cx, cy in ((0, 0), (640, 480)):
+        (tmp_path / "c.json").write_text(json.dumps({**no_dist, "cx": cx, "cy": cy}))
+        cam, _ = load_camera_file(tmp_path / "c.json")
+        assert (cam.cx, cam.cy) == (cx, cy)
+    opencv_tutorial = {"fx": 532.795, "fy": 532.919, "cx": 342.458, "cy": 233.901, "k1": -0.281086,
+                       "k2": 0.0272581, "p1": 0.00121666, "p2": -0.000134204, "k3": 0.158514}
+    fr2 = Camera.preset("fr2")
+    fr2_values = dict(zip(("fx", "fy", "cx", "cy"), (fr2.fx, fr2.fy, fr2.cx, fr2.cy)))
+    for values in (opencv_tutorial, {**fr2_values, **dict(zip(("k1", "k2", "p1", "p2", "k3"), fr2.dist))}):
+        (tmp_path / "c.json").write_text(json.dumps({**FR1, **values}))
+        assert load_camera_file(tmp_path / "c.json")[0].dist == tuple(values[k] for k in ("k1", "k2", "p1", "p2", "k3"))
+
+
+def _yaml_with(camera_matrix: str = "", distortion: str = "") -> str:
+    text = FR1_YAML
+    if camera_matrix:
+        text = text.replace("  rows: 3\n  cols: 3\n  data: [517.3, 0, 318.6, 0, 516.5, 255.3, 0, 0, 1]\n",
+                            camera_matrix, 1)
+    if distortion:
+        text = text.replace("  rows: 1\n  cols: 5\n  data: [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]\n", distortion)
+    return text
+
+
+@pytest.mark.parametrize("camera_matrix, distortion, needle", [
+    ("  rows: 3\n  cols: 3\n  data: [517.3, 0.5, 318.6, 0, 516.5, 255.3, 0, 0, 1]\n", "",
+     "camera_matrix skew (data[1]) must be 0, got 0.5"),
+    ("  rows: 3\n  cols: 3\n  data: [517.3, 0, 0, 0, 516.5, 0, 318.6, 255.3, 1]\n", "",
+     "camera_matrix third row must be [0, 0, 1], got [318.6, 255.3, 1] (a transposed, column-major matrix?)"),
+    ("  rows: 3\n  cols: 3\n  data: [517.3, 0, 318.6, 0, 516.5, 255.3, 0, 0, 2]\n", "",
+     "camera_matrix third row must be [0, 0, 1], got [0, 0, 2]"),
+    ("  rows: 3\n  cols: 3\n  data: [517.3, 0, 318.6, 0.1, 516.5, 255.3, 0, 0, 1]\n", "",
+     "camera_matrix data[3] (row 2, column 1) must be 0, got 0.1"),
+    ("  rows: 2\n  cols: 2\n  data: [517.3, 0, 318.6, 0, 516.5, 255.3, 0, 0, 1]\n", "",
+     "camera_matrix has rows: 2, cols: 2 but 9 data values"),
+    ("  rows: 1\n  cols: 9\n  data: [517.3, 0, 318.6, 0, 516.5, 255.3, 0, 0, 1]\n", "",
+     "camera_matrix must be 3x3, got rows: 1, cols: 9"),
+    ("", "  rows: 1\n  cols: 4\n  data: [0.2624, -0.9531, -0.0054, 0.0026, 1.1633]\n",
+     "distortion_coefficients has rows: 1, cols: 4 but 5 data values"),
+    ("", "  data: [0.2624, abc, -0.0054, 0.0026, 1.1633]\n", "distortion_coefficients.data must be a finite number, "
+     "got 'abc'"),
+    ("", "  data: [0.2624, nan, -0.0054, 0.0026, 1.1633]\n", "got 'nan'"),
+    ("", "  data: [0.2624, .nan, -0.0054, 0.0026, 1.1633]\n", "got nan"),
+    ("", "  data: [0.2624, 1e999, -0.0054, 0.0026, 1.1633]\n", "got '1e999'"),
+], ids=["skew", "transposed", "third-row", "lower-left", "rows-cols", "shape", "distortion-cols", "text",
+        "nan-text", "nan", "overflow"])
+def test_yaml_camera_matrix_and_matrix_sizes_are_checked(tmp_path, camera_matrix, distortion, needle):
+    pytest.importorskip("yaml")
+    f = tmp_path / "cam.yaml"
+    f.write_text(_yaml_with(camera_matrix, distortion))
+    with pytest.raises(ConfigError, match=re.escape(needle)):
+        load_camera_file(f)
+
+
+def test_ros_yaml_numbers_in_scientific_notation_read_as_numbers(tmp_path):
+    """YAML 1.1 (PyYAML) reads 5.173E2 and 2624e-4 as strings; ROS's reader takes them as numbers."""
+    yaml = pytest.importorskip("yaml")
+    text = _yaml_with("  rows: 3\n  cols: 3\n  data: [5.173E2, 0., 3.186e+02, 0., 5.165E2, 2553e-1, 0., 0., 1.]\n",
+                      "  rows: 1\n  cols: 5\n  data: [2624e-4, -9.531E-1, -5.4e-03, 26E-4, 1.1633E0]\n")
+    text += "depth_scale: 5e3\n"
+    assert isinstance(yaml.safe_load(text)["camera_matrix"]["data"][0], str)
+    f = tmp_path / "cam.yaml"
+    f.write_text(text)
+    cam, scale = load_camera_file(f)
+    _same_camera(cam, Camera.preset("fr1"))
+    assert scale == 5000.0
