@@ -16,6 +16,11 @@ import numpy as np
 from .errors import ConfigError
 
 
+#: Focal lengths a pinhole camera can have, in pixels (below: more than a radian per pixel; above:
+#: a field of view below a milliradian, where float arithmetic of the projections breaks down).
+MIN_FOCAL_PX, MAX_FOCAL_PX = 1.0, 1e6
+
+
 @dataclass(frozen=True)
 class Camera:
     """Intrinsics ``fx, fy, cx, cy`` (pixels) and distortion ``(k1, k2, p1, p2, k3)``."""
@@ -33,6 +38,9 @@ class Camera:
     def __post_init__(self) -> None:
         if not (self.fx > 0 and self.fy > 0):
             raise ConfigError(f"camera focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if not (MIN_FOCAL_PX <= self.fx <= MAX_FOCAL_PX and MIN_FOCAL_PX <= self.fy <= MAX_FOCAL_PX):
+            raise ConfigError(f"camera focal lengths must be {MIN_FOCAL_PX:g} to {MAX_FOCAL_PX:g} px, got fx={self.fx}, "
+                              f"fy={self.fy}")
         if len(self.dist) != 5:
             raise ConfigError(f"distortion needs 5 values (k1 k2 p1 p2 k3), got {len(self.dist)}")
         object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))

@@ -241,7 +241,8 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     )
     _sequence_arguments(cal, "TUM RGB-D sequence folder with groundtruth.txt")
     cal.add_argument("--max-frames", type=_int_in(11), metavar="N",
-                     help="only the first N frames (at least 11; default: all)")
+                     help="only the first N frames (at least 11, and about 30 with the frame clock on, which "
+                          "places the stamps from the 20th frame on; default: all)")
     cal.add_argument("--config", metavar="FILE",
                      help="TOML or JSON settings for the run; its sensor terms are ignored (see README)")
     cal.add_argument("--reference-jitter", action="store_true",

@@ -424,8 +424,14 @@ def calibrate_sequence(
     consecutive = calibration_pairs(result.steps, lookup, config)
     T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
     if len(T_est) < 10:
+        with_truth = calibration_pairs(result.steps, lookup, config, require_clock=False)
+        tracked = [s for s in result.steps if s.has_relative_pose and s.velocity is not None and not s.flagged
+                   and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1]
+        clock = (" and both frames placed by the frame clock, which places the stamps from the 20th frame on"
+                 if config.sensor.frame_clock else "")
         raise InputError(f"{seq.path}: the fit needs at least 10 consecutive tracked frame pairs with usable ground "
-                         f"truth at both frames, got {len(T_est)} (of {len(consecutive)} consecutive tracked pairs)")
+                         f"truth at both frames{clock}; got {len(T_est)} ({len(tracked)} consecutive pairs tracked, "
+                         f"{len(with_truth)} of them with ground truth)")
     fixed = prior_covariances(consecutive, priors)
     if reference_sd is not None:
         from .reference_noise import pair_jitter_covariances

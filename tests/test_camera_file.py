@@ -110,6 +110,8 @@ def test_camera_file_depth_scale_reaches_the_run(sample_dir, tmp_path):
     ({**FR1, "fx": "big"}, "fx must be a finite number"),
     ({**FR1, "width": 640.5}, "width must be a positive integer"),
     ({**FR1, "fx": -1.0}, "focal lengths must be positive"),
+    ({**FR1, "fx": 1e-200}, "focal lengths must be 1 to 1e"),
+    ({**FR1, "fy": 1e200}, "focal lengths must be 1 to 1e"),
 ])
 def test_bad_camera_file_is_one_line_exit_2(sample_dir, tmp_path, capsys, content, needle):
     f = tmp_path / "cam.json"

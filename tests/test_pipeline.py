@@ -279,6 +279,13 @@ def test_calibrate_without_ground_truth_is_a_clear_error(sample_dir, tmp_path, c
     assert "needs ground truth" in err and "Traceback" not in err
 
 
+def test_calibrate_on_too_few_frames_says_which_pairs_it_could_not_use(sample_dir, tmp_path, capsys):
+    assert main(["calibrate", str(sample_dir), "--out", str(tmp_path / "cal"), "--quiet", "--max-frames", "11"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "got 0 (10 consecutive pairs tracked, 10 of them with ground truth)" in err
+    assert "frame clock" in err
+
+
 @pytest.mark.realdata
 @pytest.mark.slow
 def test_default_depth_sigma_scale_minimises_rpe1_on_the_first_half_of_fr1_rpy(fr1_rpy_dir, tmp_path):
