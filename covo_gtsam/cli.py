@@ -192,6 +192,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             line += f", ANEES t {r['anees_t']:.2f} r {r['anees_r']:.2f}"
         print(line)
     print(f"results in {args.out} (summary.csv, summary.md)")
+    nothing = [r["sequence"] for r in rows if r["frames"] and r["lost"] == r["frames"]]
+    if nothing:
+        print(f"covo: error: no frame could be tracked in {', '.join(nothing)}: all frames are lost; see their "
+              f"metrics.json", file=sys.stderr)
+        return EXIT_NOTHING_TRACKED
     return 0
 
 

@@ -95,3 +95,20 @@ def test_malformed_scheduler_address_is_refused_before_connecting(sample_dir, tm
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "not a scheduler address" in err and "Traceback" not in err
     assert not tried  # refused before any connection attempt
+
+
+def test_evaluate_ends_with_exit_code_3_when_a_sequence_lost_every_frame(small_sample, tmp_path, capsys):
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    good, bad = small_sample(3), tmp_path / "rgbd_dataset_freiburg1_blind"
+    shutil.copytree(good, bad)
+    for png in (bad / "depth").glob("*.png"):
+        cv2.imwrite(str(png), np.zeros((480, 640), np.uint16))
+    assert main(["evaluate", str(good), str(bad), "--out", str(tmp_path / "e"), "--quiet", "--no-plots",
+                 "--workers", "1"]) == 3
+    captured = capsys.readouterr()
+    assert "no frame could be tracked in rgbd_dataset_freiburg1_blind" in captured.err
+    assert (tmp_path / "e" / "summary.csv").is_file()  # the summary is written all the same
