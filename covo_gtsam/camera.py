@@ -19,6 +19,9 @@ from .errors import ConfigError
 #: Focal lengths a pinhole camera can have, in pixels (below: more than a radian per pixel; above:
 #: a field of view below a milliradian, where float arithmetic of the projections breaks down).
 MIN_FOCAL_PX, MAX_FOCAL_PX = 1.0, 1e6
+#: :meth:`Camera.undistort`: a pixel whose 20 fixed-point steps leave it farther than this from its
+#: measurement (px, distorted again) gets up to this many steps
+UNDISTORT_TOLERANCE_PX, UNDISTORT_MAX_ITERATIONS = 0.01, 1000
 
 
 @dataclass(frozen=True)
@@ -119,13 +122,25 @@ class Camera:
         return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=1)
 
     def undistort(self, uv: np.ndarray) -> np.ndarray:
-        """Undistorted pixels (N, 2) of measured pixels (N, 2) (iterative inverse of :meth:`distort`)."""
+        """Undistorted pixels (N, 2) of measured pixels (N, 2) (iterative inverse of :meth:`distort`:
+        20 iterations, and up to :data:`UNDISTORT_MAX_ITERATIONS` for the pixels that are then still
+        more than :data:`UNDISTORT_TOLERANCE_PX` from their measurement when distorted again, as
+        under strong wide-angle distortion)."""
         uv = np.asarray(uv, dtype=float)
         if not self.has_distortion or uv.shape[0] == 0:
             return uv.copy()
+        out = self._undistort_iterations(uv, 20, 1e-6)
+        slow = np.flatnonzero(~(np.linalg.norm(self.distort(out) - uv, axis=1) <= UNDISTORT_TOLERANCE_PX))
+        if slow.size:
+            out[slow] = self._undistort_iterations(uv[slow], UNDISTORT_MAX_ITERATIONS, 1e-12)
+        return out
+
+    def _undistort_iterations(self, uv: np.ndarray, iterations: int, eps: float) -> np.ndarray:
+        """OpenCV's fixed-point undistortion of pixels (N, 2): at most ``iterations`` steps, until a
+        step's change is below ``eps`` (normalised image coordinates)."""
         import cv2
 
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-6)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, eps)
         src, dist = uv.reshape(-1, 1, 2), np.asarray(self.dist, dtype=float)
         if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x: the iterative variant takes criteria
             pts = cv2.undistortPointsIter(src, self._K, dist, np.eye(3), self._K, criteria)

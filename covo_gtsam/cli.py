@@ -302,7 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one command; the exit code: 0 done, 2 unusable input (one line on stderr), 3 ``covo run``
-    tracked no frame, 130 interrupted (Ctrl-C)."""
+    tracked no frame or estimated no relative pose (``covo evaluate``: a sequence tracked no frame),
+    130 interrupted (Ctrl-C)."""
     _one_blas_thread(sys.argv[1:] if argv is None else argv)
     try:
         parser = build_parser()  # imports GTSAM: Ctrl-C may arrive here

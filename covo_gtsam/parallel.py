@@ -25,24 +25,23 @@ def default_workers(tasks: int) -> int:
     return max(1, min(tasks, os.cpu_count() or 1))
 
 
-#: the transports a scheduler's address may name (Dask's network transports)
-SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
-
-
 def _check_address(address: str) -> None:
-    """A scheduler address Dask can connect to: ``[scheme://]host:port``, the scheme one of
-    :data:`SCHEDULER_SCHEMES` (tcp if none), checked before connecting.
+    """A scheduler address Dask can connect to: ``[scheme://]host:port``, the scheme one of Dask's
+    registered network transports (tcp if none; not ``inproc``, which is within one process),
+    checked before connecting.
 
     Raises:
         ConfigError: it is not such an address.
     """
     from distributed.comm import parse_address
     from distributed.comm.addressing import parse_host_port
+    from distributed.comm.registry import backends
 
+    schemes = sorted(set(backends) - {"inproc"})
     try:
         scheme, location = parse_address(address)
-        if scheme not in SCHEDULER_SCHEMES:
-            raise ValueError(f"the transport must be one of {', '.join(SCHEDULER_SCHEMES)}, got {scheme!r}")
+        if scheme not in schemes:
+            raise ValueError(f"the transport must be one of {', '.join(schemes)}, got {scheme!r}")
         parse_host_port(location)
     except (ValueError, TypeError) as exc:
         raise ConfigError(f"--scheduler {address}: not a scheduler address such as tcp://HOST:PORT "

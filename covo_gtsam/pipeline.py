@@ -277,24 +277,16 @@ def run_sequence(
     with FolderLock(out):
         from .plots import RUN_PLOTS
 
+        if bag_out is not None:  # checked before anything is removed; only a bag covo wrote goes
+            from .ros_io import clear_bag_output
+
+            clear_bag_output(out, bag_out, inputs=(getattr(seq, "path", None),), remove=False)
         prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
-        _remove_earlier_bags(out, bag_out)
+        if bag_out is not None:
+            clear_bag_output(out, bag_out, inputs=(getattr(seq, "path", None),))
         save_config(config, out / "config.toml", header=f"covo-gtsam {__version__}: the configuration of this run")
         with kernel_threads(1):
             return _run(vo, StepHistory(keep_error_bases), seq, out, config, max_frames, plots, progress, bag_out)
-
-
-def _remove_earlier_bags(out: Path, bag_out: str | None) -> None:
-    """Earlier runs' bags out of the results folder: this run's format must be free for its bag
-    (a file or folder of that name that is not a bag raises DatasetError), and a bag of the other
-    format is removed; other files of those names are the user's and stay."""
-    from .ros_io import BAG_FORMATS, bag_output_path, is_bag_output, remove_bag_outputs
-
-    if bag_out is not None:
-        remove_bag_outputs(out, (bag_out,))
-    for fmt in BAG_FORMATS:
-        if fmt != bag_out and is_bag_output(bag_output_path(out, fmt)):
-            remove_bag_outputs(out, (fmt,))
 
 
 def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, config: OdometryConfig,

@@ -40,7 +40,7 @@ from .covariance import tangent_to_ros
 from .errors import ConfigError, DatasetError
 from .geometry import matrix_to_quat
 
-__all__ = ["BAG_FORMATS", "OdometryBagWriter", "bag_output_path", "is_bag_output", "remove_bag_outputs",
+__all__ = ["BAG_FORMATS", "OdometryBagWriter", "bag_output_path", "clear_bag_output", "is_covo_bag",
            "require_rosbags"]
 
 BAG_FORMATS = ("ros1", "ros2")
@@ -67,32 +67,52 @@ def bag_output_path(out_dir: str | os.PathLike, fmt: str) -> Path:
     return Path(out_dir) / ("odometry.bag" if fmt == "ros1" else "odometry")
 
 
-def is_bag_output(path: Path) -> bool:
-    """True for what a bag output of covo can be: a ROS 1 bag file (its ``#ROSBAG V2.0`` header)
-    or a ROS 2 bag folder (its ``metadata.yaml``); anything else at that path is the user's."""
-    if path.is_symlink():
+def is_covo_bag(path: Path) -> bool:
+    """True for a bag covo wrote: a ROS 1 bag file or a ROS 2 bag folder (not a symlink) whose
+    topics are covo's own (:data:`ODOMETRY_TOPIC`, :data:`RELATIVE_TOPIC`). Anything else at a
+    bag output's path is the user's."""
+    try:
+        if path.is_symlink() or not path.exists():
+            return False
+        if path.is_dir() and not (path / "metadata.yaml").is_file():
+            return False
+        if path.is_file():
+            with open(path, "rb") as f:
+                if f.read(13) != b"#ROSBAG V2.0\n":
+                    return False
+        require_rosbags()
+        from rosbags.highlevel import AnyReader
+
+        with AnyReader([path]) as reader:
+            topics = {c.topic for c in reader.connections}
+    except Exception:  # unreadable, not a bag after all, or no rosbags: not shown to be covo's
         return False
-    if path.is_dir():
-        return (path / "metadata.yaml").is_file()
-    if path.is_file():
-        with open(path, "rb") as f:
-            return f.read(13) == b"#ROSBAG V2.0\n"
-    return False
+    return bool(topics) and topics <= {ODOMETRY_TOPIC, RELATIVE_TOPIC}
 
 
-def remove_bag_outputs(out_dir: str | os.PathLike, formats: tuple[str, ...] = BAG_FORMATS) -> None:
-    """Remove earlier bags of ``formats`` from the results folder (bags only: another file or
-    folder of that name raises), so the folder describes one run.
+def clear_bag_output(out_dir: str | os.PathLike, fmt: str, inputs: tuple = (), remove: bool = True) -> None:
+    """Make the bag output's path of ``fmt`` in ``out_dir`` free: an earlier bag covo wrote there
+    is removed (with ``remove``; without, only checked), nothing else is ever removed.
 
     Raises:
-        DatasetError: ``OUT/odometry.bag`` or ``OUT/odometry`` exists and is not a bag.
+        DatasetError: something else is there (a user's file, folder or bag), it is or holds one of
+            ``inputs`` (the paths the run reads), or it cannot be removed.
     """
-    for fmt in formats:
-        path = bag_output_path(out_dir, fmt)
-        if is_bag_output(path):
+    path = bag_output_path(out_dir, fmt)
+    if not (path.exists() or path.is_symlink()):
+        return
+    require_rosbags()  # to tell covo's bag from another one
+    target = path.resolve()
+    for src in inputs:
+        if src is not None and (Path(src).resolve() == target or target in Path(src).resolve().parents):
+            raise DatasetError(f"{path}: is the sequence this run reads; choose another --out for the bag")
+    if not is_covo_bag(path):
+        raise DatasetError(f"{path}: exists and is not a bag written by covo; remove it first")
+    if remove:
+        try:
             shutil.rmtree(path) if path.is_dir() else path.unlink()
-        elif path.exists() or path.is_symlink():
-            raise DatasetError(f"{path}: exists and is not a bag written by covo; remove it first")
+        except OSError as exc:
+            raise DatasetError(f"{path}: cannot remove the earlier run's bag ({exc.strerror or exc})") from None
 
 
 def _stamp(t: float) -> tuple[int, int]:
@@ -114,7 +134,7 @@ class OdometryBagWriter:
         self.fmt = fmt
         self.path = bag_output_path(out_dir, fmt)
         self.camera_frame = camera_frame or "camera"
-        remove_bag_outputs(out_dir, (fmt,))
+        clear_bag_output(out_dir, fmt)
         if fmt == "ros1":
             from rosbags.rosbag1 import Writer
 

@@ -161,6 +161,25 @@ def test_principal_point_on_the_image_border_and_real_distortions_load(tmp_path)
         assert load_camera_file(tmp_path / "c.json")[0].dist == tuple(values[k] for k in ("k1", "k2", "p1", "p2", "k3"))
 
 
+@pytest.mark.parametrize("f, k1, k2, size", [(300, -0.3, 0.1, (640, 480)), (250, -0.4, 0.15, (640, 480)),
+                                             (191, -0.23, 0.05, (512, 512))])
+def test_wide_angle_distortions_that_do_not_fold_load_and_undistort(tmp_path, f, k1, k2, size):
+    """r - 0.3 r^3 + 0.1 r^5 and the like grow monotonically over the image: invertible, though the
+    fixed-point undistortion needs more than its first 20 steps at the corners."""
+    w, h = size
+    values = {"fx": f, "fy": f, "cx": w / 2, "cy": h / 2, "width": w, "height": h, "depth_scale": 5000,
+              "k1": k1, "k2": k2, "p1": 0.0, "p2": 0.0, "k3": 0.0}
+    (tmp_path / "c.json").write_text(json.dumps(values))
+    cam, _ = load_camera_file(tmp_path / "c.json")
+    u, v = np.meshgrid(np.arange(0.0, w + 1, 4), np.arange(0.0, h + 1, 4))
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)
+    assert np.abs(cam.distort(cam.undistort(uv)) - uv).max() <= 0.01
+    folded = {**values, "fx": 400, "fy": 400, "k1": -0.4, "k2": 0.0}  # the corners have no preimage
+    (tmp_path / "c.json").write_text(json.dumps(folded))
+    with pytest.raises(ConfigError, match="cannot be undistorted"):
+        load_camera_file(tmp_path / "c.json")
+
+
 def _yaml_with(camera_matrix: str = "", distortion: str = "") -> str:
     text = FR1_YAML
     if camera_matrix:

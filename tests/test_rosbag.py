@@ -387,18 +387,32 @@ def test_evaluate_takes_bags_and_folders(fr1_desk_dir, tmp_path, capsys):
 
 def test_bag_output_never_replaces_the_users_files(sample_dir, tmp_path, capsys):
     out = tmp_path / "o"
-    out.mkdir()
     args = ["run", str(sample_dir), "--out", str(out), "--max-frames", "3", "--quiet", "--no-plots"]
+    assert main(args) == 0
+    earlier = (out / "relative.txt").read_text()
     for fmt, name in (("ros1", "odometry.bag"), ("ros2", "odometry")):
         (out / name).write_text("the user's notes")
         assert main([*args, "--bag-out", fmt]) == 2
         assert "is not a bag written by covo" in capsys.readouterr().err
         assert (out / name).read_text() == "the user's notes"
+        assert (out / "relative.txt").read_text() == earlier  # refused before the earlier results went
         (out / name).unlink()
-    # a bag of one format goes when the next run writes the other one, or none: one run per folder
+    # covo's own bag is replaced by the next run's; a run without --bag-out leaves every bag alone
     assert main([*args, "--bag-out", "ros2"]) == 0 and (out / "odometry" / "metadata.yaml").is_file()
-    assert main([*args, "--bag-out", "ros1"]) == 0
-    assert (out / "odometry.bag").read_bytes().startswith(b"#ROSBAG V2.0") and not (out / "odometry").exists()
-    (out / "odometry").write_text("the user's notes")  # not asked for a ros2 bag: left alone
-    assert main(args) == 0
-    assert not (out / "odometry.bag").exists() and (out / "odometry").read_text() == "the user's notes"
+    assert main([*args, "--bag-out", "ros2"]) == 0 and (out / "odometry" / "metadata.yaml").is_file()
+    assert main(args) == 0 and (out / "odometry" / "metadata.yaml").is_file()
+    # a user's ROS 2 recording of that name (other topics) is not covo's
+    shutil.rmtree(out / "odometry")
+    write_bag(out / "odometry", TumSequence(sample_dir), ros1=False, colour="rgb8", depth="32FC1", n=3)
+    assert main([*args, "--bag-out", "ros2"]) == 2
+    assert "is not a bag written by covo" in capsys.readouterr().err
+    assert (out / "odometry" / "metadata.yaml").is_file()
+
+
+def test_bag_output_never_replaces_the_bag_it_reads(sample_dir, tmp_path, capsys):
+    out = tmp_path / "o"
+    out.mkdir()
+    bag = write_bag(out / "odometry.bag", TumSequence(sample_dir), ros1=True, colour="rgb8", depth="32FC1", n=3)
+    assert main(["run", str(bag), "--out", str(out), "--quiet", "--no-plots", "--bag-out", "ros1"]) == 2
+    assert "is the sequence this run reads" in capsys.readouterr().err
+    assert bag.is_file() and RosbagSequence(bag).timestamps.shape == (3,)

@@ -299,6 +299,18 @@ def test_repeated_image_stamp_names_file_and_line(tmp_path, name):
         read_file_list(seq / name)
 
 
+@pytest.mark.parametrize("name", ["rgb.txt", "depth.txt"])
+def test_a_line_written_twice_in_an_image_list_is_read_once(tmp_path, name):
+    seq = make_sequence(tmp_path)
+    plain = read_file_list(seq / name)
+    lines = (seq / name).read_text().splitlines()
+    k = next(no for no, ln in enumerate(lines) if ln[:1].isdigit()) + 1
+    (seq / name).write_text("\n".join(lines[:k + 1] + [lines[k]] + lines[k + 1:]) + "\n")
+    twice = read_file_list(seq / name)
+    np.testing.assert_array_equal(twice[0], plain[0])
+    assert twice[1] == plain[1]
+
+
 def test_repeated_groundtruth_stamp(tmp_path):
     """A ground-truth stamp repeated with another pose is an error naming both lines; a line repeated
     exactly (also with the quaternion's sign flipped) is dropped, leaving the samples as they were."""
@@ -311,7 +323,7 @@ def test_repeated_groundtruth_stamp(tmp_path):
         doubled.append(ln)
         if not ln.startswith("#"):
             v = ln.split()
-            doubled.append(" ".join(v[:4] + [f"-{x}" for x in v[4:]]) if len(doubled) % 4 else ln)
+            doubled.append(" ".join(v[:4] + [repr(-float(x)) for x in v[4:]]) if len(doubled) % 4 else ln)
     gt.write_text("\n".join(doubled) + "\n")
     same = TumSequence(seq)
     np.testing.assert_array_equal(same.gt_samples[0], plain.gt_samples[0])

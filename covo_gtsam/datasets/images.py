@@ -48,10 +48,11 @@ def _png_size(path: str) -> tuple[int, int] | None:
 
 
 def _check_size(path: str, shape: tuple[int, int] | None, what: str, expected: str = "expected") -> None:
-    """A PNG's size from its header against the expected ``(height, width)``, before any decoding
-    (a small file can declare a huge image)."""
+    """A PNG's pixel count from its header against the expected ``(height, width)``, before any
+    decoding (a small file can declare a huge image; the exact shape is checked after decoding, as
+    an orientation tag may turn the image)."""
     size = None if shape is None else _png_size(path)
-    if size is not None and size != tuple(shape):
+    if size is not None and size[0] * size[1] != shape[0] * shape[1]:
         raise InputError(f"{path}: {what} is {size[1]}x{size[0]}, {expected} {shape[1]}x{shape[0]}")
 
 

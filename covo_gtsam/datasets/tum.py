@@ -48,13 +48,16 @@ class Frame:
 def read_file_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
     """Timestamps (N,) in s and file names of a TUM ``rgb.txt`` / ``depth.txt`` (``timestamp filename`` lines).
 
-    ``#`` comment lines and blank lines are skipped. A malformed line, or a timestamp that an
-    earlier line already has (two images at one instant: association by time could not tell them
-    apart), raises :class:`DatasetError` naming the file and line number.
+    ``#`` comment lines and blank lines are skipped, and so is a line that repeats an earlier one
+    exactly (the same timestamp and file: an extraction that wrote it twice). A malformed line, or a
+    timestamp that an earlier line already has with another file (two images at one instant:
+    association by time could not tell them apart), raises :class:`DatasetError` naming the file
+    and line number.
     """
     p = Path(path)
     stamps, names = [], []
     first_line: dict[float, int] = {}
+    name_at: dict[float, str] = {}
     for no, s in data_lines(p):
         parts = s.split()
         try:
@@ -66,9 +69,11 @@ def read_file_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
         except ValueError:
             raise DatasetError(f"{p}:{no}: expected 'timestamp filename', got {s[:80]!r}") from None
         if t in first_line:
+            if name_at[t] == parts[1]:  # the same line again
+                continue
             raise DatasetError(f"{p}:{no}: timestamp {parts[0]} repeats the one of line {first_line[t]} (two "
                                "images at one instant; each image needs its own timestamp)")
-        first_line[t] = no
+        first_line[t], name_at[t] = no, parts[1]
         stamps.append(t)
         names.append(parts[1])
     return np.array(stamps, dtype=float), names
