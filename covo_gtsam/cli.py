@@ -64,7 +64,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         line += f" (chains of {c['pairs_per_chain']}: t {c['anees_translation']:.2f} r {c['anees_rotation']:.2f})"
     print(line)
     if getattr(seq, "groundtruth", None) is None:
-        print(f"{seq.name}: no ground truth; accuracy and consistency metrics skipped")
+        gt = Path(getattr(seq, "path", "")) / "groundtruth.txt"
+        why = ("groundtruth.txt is not a file" if gt.is_dir() else "groundtruth.txt has no samples"
+               if gt.is_file() else "no ground truth")
+        print(f"{seq.name}: {why}; accuracy and consistency metrics skipped")
     if result.plot_files is None:
         _plots_missing()
     print(f"results in {result.out_dir}")

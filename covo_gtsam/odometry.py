@@ -198,7 +198,8 @@ class VisualOdometry(DeprecatedStepAccess):
     def _first_step(self, frame: FrameData, t: float) -> OdometryStep:
         """The first posed frame, the world frame; lost without enough features with depth."""
         if frame.num_valid < self.config.frontend.min_pairs:
-            return OdometryStep(t, StepStatus.LOST, reason=f"only {frame.num_valid} features with valid depth")
+            return OdometryStep(t, StepStatus.LOST, reason=f"only {frame.num_valid} features with valid depth "
+                                f"(of {frame.num_features} detected; need {self.config.frontend.min_pairs})")
         return OdometryStep(t, StepStatus.ORIGIN, pose=gtsam.Pose3(), pose_covariance=np.zeros((6, 6)))
 
     def _match_to_reference(self, frame: FrameData, t: float) -> tuple[OdometryStep, _PosedFrame]:
@@ -293,7 +294,8 @@ class VisualOdometry(DeprecatedStepAccess):
                             num_matches=pairs.num_matches, num_pairs=pairs.num_inliers)
         min_pairs = self.config.frontend.min_pairs
         if pairs.num_inliers < min_pairs:
-            step.reason = f"only {pairs.num_inliers} point pairs (need {min_pairs})"
+            step.reason = (f"only {pairs.num_inliers} point pairs (need {min_pairs}; {frame.num_features} features "
+                           f"detected, {frame.num_valid} with valid depth, {pairs.num_matches} matched)")
             return step
         # time between the two captures: the stamps' difference corrected by the frame clock
         dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -176,6 +177,9 @@ def test_no_relative_pose_at_all_is_loud_with_exit_code_3(small_sample, tmp_path
     assert "no relative pose could be estimated" in captured.err
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["tracked_frames"] == 1 and len(metrics["lost"]) == 3
+    # the reason says which stage ran short: features were found, none had depth
+    assert all(re.search(r"only 0 point pairs \(need \d+; [1-9]\d* features detected, 0 with valid depth",
+                         lost["reason"]) for lost in metrics["lost"]), metrics["lost"]
     assert not [line for line in (out / "relative.txt").read_text().splitlines() if not line.startswith("#")]
 
 
@@ -255,3 +259,19 @@ def test_rerun_without_ground_truth_removes_stale_plots(small_seq, tmp_path):
     assert main(["run", str(small_seq), "--out", str(out), "--quiet"]) == 0
     assert (out / "plots" / "trajectory.png").exists()
     assert not (out / "plots" / "nees.png").exists() and not (out / "plots" / "rpe.png").exists()
+
+
+@pytest.mark.parametrize("kind", ["missing", "empty", "folder"])
+def test_a_run_without_usable_ground_truth_says_why(small_sample, tmp_path, capsys, kind):
+    seq = small_sample(3)
+    gt = seq / "groundtruth.txt"
+    gt.unlink()
+    if kind == "empty":
+        gt.write_text("# timestamp tx ty tz qx qy qz qw\n")
+    elif kind == "folder":
+        gt.mkdir()
+    assert main(["run", str(seq), "--out", str(tmp_path / "o"), "--quiet", "--no-plots"]) == 0
+    out = capsys.readouterr().out
+    want = {"missing": "no ground truth", "empty": "groundtruth.txt has no samples",
+            "folder": "groundtruth.txt is not a file"}[kind]
+    assert f"{want}; accuracy and consistency metrics skipped" in out
