@@ -130,7 +130,8 @@ class Camera:
         if not self.has_distortion or uv.shape[0] == 0:
             return uv.copy()
         out = self._undistort_iterations(uv, 20, 1e-6)
-        slow = np.flatnonzero(~(np.linalg.norm(self.distort(out) - uv, axis=1) <= UNDISTORT_TOLERANCE_PX))
+        off = np.linalg.norm(self.distort(out) - uv, axis=1)
+        slow = np.flatnonzero(np.isfinite(uv).all(axis=1) & ~(off <= UNDISTORT_TOLERANCE_PX))
         if slow.size:
             out[slow] = self._undistort_iterations(uv[slow], UNDISTORT_MAX_ITERATIONS, 1e-12)
         return out

@@ -252,7 +252,8 @@ def run_sequence(
 
     The folder is checked before the first frame (the files of :data:`RUN_FILES` and, with
     ``plots``, the figures of ``plots/`` must be writable) and the results of an earlier run of
-    those names are removed, so the folder describes one run; ``config.toml`` (``config``, which
+    those names are removed, so the folder describes one run (an earlier bag goes only when this run
+    writes a bag of its format, and only if covo wrote it); ``config.toml`` (``config``, which
     ``--config`` reads back) is written first. An interrupted run leaves its text files (valid up
     to the last line) and no ``metrics.json``.
     The folder is locked while the run writes into it.

@@ -67,26 +67,33 @@ def bag_output_path(out_dir: str | os.PathLike, fmt: str) -> Path:
     return Path(out_dir) / ("odometry.bag" if fmt == "ros1" else "odometry")
 
 
+def _bag_topics(path: Path) -> tuple[set[str] | None, str]:
+    """The topics of the bag at ``path`` (a ROS 1 bag file or a ROS 2 bag folder, not a symlink),
+    or ``(None, why not)``."""
+    try:
+        if path.is_symlink():
+            return None, "a symbolic link"
+        if path.is_dir() and not (path / "metadata.yaml").is_file():
+            return None, "a folder without a bag's metadata.yaml"
+        if path.is_file():
+            with open(path, "rb") as f:
+                if f.read(13) != b"#ROSBAG V2.0\n":
+                    return None, "not a ROS 1 bag"
+        elif not path.is_dir():
+            return None, "neither a file nor a folder"
+        from rosbags.highlevel import AnyReader
+
+        with AnyReader([path]) as reader:
+            return {c.topic for c in reader.connections}, ""
+    except Exception as exc:  # unreadable, unindexed (a killed writer), not a bag after all
+        return None, " ".join(str(exc).split()) or type(exc).__name__
+
+
 def is_covo_bag(path: Path) -> bool:
     """True for a bag covo wrote: a ROS 1 bag file or a ROS 2 bag folder (not a symlink) whose
     topics are covo's own (:data:`ODOMETRY_TOPIC`, :data:`RELATIVE_TOPIC`). Anything else at a
     bag output's path is the user's."""
-    try:
-        if path.is_symlink() or not path.exists():
-            return False
-        if path.is_dir() and not (path / "metadata.yaml").is_file():
-            return False
-        if path.is_file():
-            with open(path, "rb") as f:
-                if f.read(13) != b"#ROSBAG V2.0\n":
-                    return False
-        require_rosbags()
-        from rosbags.highlevel import AnyReader
-
-        with AnyReader([path]) as reader:
-            topics = {c.topic for c in reader.connections}
-    except Exception:  # unreadable, not a bag after all, or no rosbags: not shown to be covo's
-        return False
+    topics, _ = _bag_topics(path)
     return bool(topics) and topics <= {ODOMETRY_TOPIC, RELATIVE_TOPIC}
 
 
@@ -95,19 +102,27 @@ def clear_bag_output(out_dir: str | os.PathLike, fmt: str, inputs: tuple = (), r
     is removed (with ``remove``; without, only checked), nothing else is ever removed.
 
     Raises:
-        DatasetError: something else is there (a user's file, folder or bag), it is or holds one of
-            ``inputs`` (the paths the run reads), or it cannot be removed.
+        DatasetError: something else is there (a user's file, folder or bag, or a bag that cannot be
+            read, as one a killed run left), it is or holds one of ``inputs`` (the paths the run
+            reads), or it cannot be removed.
     """
     path = bag_output_path(out_dir, fmt)
     if not (path.exists() or path.is_symlink()):
         return
     require_rosbags()  # to tell covo's bag from another one
-    target = path.resolve()
-    for src in inputs:
-        if src is not None and (Path(src).resolve() == target or target in Path(src).resolve().parents):
-            raise DatasetError(f"{path}: is the sequence this run reads; choose another --out for the bag")
-    if not is_covo_bag(path):
-        raise DatasetError(f"{path}: exists and is not a bag written by covo; remove it first")
+    try:
+        target = path.resolve()
+        sources = [Path(src).resolve() for src in inputs if src is not None]
+    except (OSError, RuntimeError) as exc:  # e.g. a symbolic link loop
+        raise DatasetError(f"{path}: cannot be resolved ({exc}); remove it first") from None
+    if any(src == target or target in src.parents for src in sources):
+        raise DatasetError(f"{path}: is the sequence this run reads; choose another --out for the bag")
+    topics, why = _bag_topics(path)
+    if topics is None:
+        raise DatasetError(f"{path}: exists and cannot be recognised as a bag covo wrote ({why}); remove it first")
+    if not topics or not topics <= {ODOMETRY_TOPIC, RELATIVE_TOPIC}:
+        raise DatasetError(f"{path}: exists and is not a bag written by covo (topics {', '.join(sorted(topics))}); "
+                           "remove it first")
     if remove:
         try:
             shutil.rmtree(path) if path.is_dir() else path.unlink()

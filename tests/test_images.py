@@ -142,3 +142,11 @@ def test_a_png_declaring_a_huge_image_is_refused_before_decoding(small_sample, m
     with pytest.raises(InputError, match=r"is 16000x16000, (expected|the camera's is) 640x480"):
         seq.load(1)
     assert not decoded
+
+
+def test_load_grey_holds_the_camera_shape_after_decoding(tmp_path):
+    wide = tmp_path / "wide.png"  # as many pixels as 640x480, another shape: passes the header's count
+    cv2.imwrite(str(wide), np.zeros((160, 1920), np.uint8))
+    with pytest.raises(InputError, match=r"image is 1920x160, the camera's is 640x480"):
+        load_grey(wide, shape=(480, 640))
+    assert load_grey(wide).shape == (160, 1920)

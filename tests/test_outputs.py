@@ -164,6 +164,8 @@ def test_every_frame_lost_is_loud_with_exit_code_3(small_sample, tmp_path, capsy
     assert "no frame could be tracked" in captured.err and "all 3 frames are lost" in captured.err
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["tracked_frames"] == 0 and len(metrics["lost"]) == 3
+    assert re.fullmatch(r"only 0 features with valid depth \(of [1-9]\d* detected; need \d+\)",
+                        metrics["lost"][0]["reason"]), metrics["lost"][0]
 
 
 def test_no_relative_pose_at_all_is_loud_with_exit_code_3(small_sample, tmp_path, capsys):

@@ -393,10 +393,21 @@ def test_bag_output_never_replaces_the_users_files(sample_dir, tmp_path, capsys)
     for fmt, name in (("ros1", "odometry.bag"), ("ros2", "odometry")):
         (out / name).write_text("the user's notes")
         assert main([*args, "--bag-out", fmt]) == 2
-        assert "is not a bag written by covo" in capsys.readouterr().err
+        assert "cannot be recognised as a bag covo wrote" in capsys.readouterr().err
         assert (out / name).read_text() == "the user's notes"
         assert (out / "relative.txt").read_text() == earlier  # refused before the earlier results went
         (out / name).unlink()
+    # a ROS 1 bag a killed writer left (header, no index) and a symbolic link loop: one line, kept
+    (out / "odometry.bag").write_bytes(b"#ROSBAG V2.0\n" + bytes(64))
+    assert main([*args, "--bag-out", "ros1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot be recognised as a bag covo wrote" in err
+    assert (out / "odometry.bag").stat().st_size == 77
+    (out / "odometry.bag").unlink()
+    (out / "odometry.bag").symlink_to("odometry.bag")
+    assert main([*args, "--bag-out", "ros1"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1 and (out / "odometry.bag").is_symlink()
+    (out / "odometry.bag").unlink()
     # covo's own bag is replaced by the next run's; a run without --bag-out leaves every bag alone
     assert main([*args, "--bag-out", "ros2"]) == 0 and (out / "odometry" / "metadata.yaml").is_file()
     assert main([*args, "--bag-out", "ros2"]) == 0 and (out / "odometry" / "metadata.yaml").is_file()
@@ -405,7 +416,7 @@ def test_bag_output_never_replaces_the_users_files(sample_dir, tmp_path, capsys)
     shutil.rmtree(out / "odometry")
     write_bag(out / "odometry", TumSequence(sample_dir), ros1=False, colour="rgb8", depth="32FC1", n=3)
     assert main([*args, "--bag-out", "ros2"]) == 2
-    assert "is not a bag written by covo" in capsys.readouterr().err
+    assert "is not a bag written by covo (topics /camera/" in capsys.readouterr().err
     assert (out / "odometry" / "metadata.yaml").is_file()
 
 

@@ -71,6 +71,8 @@ def load_grey(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
         img = cv2.imread(p, cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise InputError(f"{p}: image is unreadable or corrupt")
+    if shape is not None and img.shape != tuple(shape):
+        raise InputError(f"{p}: image is {img.shape[1]}x{img.shape[0]}, the camera's is {shape[1]}x{shape[0]}")
     return img
 
 
