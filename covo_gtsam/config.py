@@ -39,8 +39,8 @@ from .choices import MotionModel, RobustKernel, Weighting
 from .errors import ConfigError, InputError
 from .frontend import FrontendConfig
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
-from .validation import (MAX_DEPTH_SCALE, MAX_PIXEL_SIGMA, MAX_SCALE, MIN_DEPTH_SCALE, MIN_PIXEL_SIGMA, MIN_SCALE, check_settings, choice, declared, flag,
-                         integer, number, range_text)
+from .validation import (MAX_DEPTH_SCALE, MAX_PIXEL_SIGMA, MAX_SCALE, MIN_DEPTH_SCALE, MIN_PIXEL_SIGMA, MIN_SCALE,
+                         check_settings, choice, declared, flag, integer, number, range_text)
 
 #: Longest time (s) between a frame and its reference frame that is still matched: a longer gap is
 #: not one recording (e.g. a corrupt timestamp), and the frame term would grow without bound.

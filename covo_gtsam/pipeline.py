@@ -278,13 +278,11 @@ def run_sequence(
     with FolderLock(out):
         from .plots import RUN_PLOTS
 
-        if bag_out is not None:  # checked before anything is removed; only a bag covo wrote goes
+        if bag_out is not None:  # checked before anything is removed; the bag writer removes covo's own
             from .ros_io import clear_bag_output
 
             clear_bag_output(out, bag_out, inputs=(getattr(seq, "path", None),), remove=False)
         prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
-        if bag_out is not None:
-            clear_bag_output(out, bag_out, inputs=(getattr(seq, "path", None),))
         save_config(config, out / "config.toml", header=f"covo-gtsam {__version__}: the configuration of this run")
         with kernel_threads(1):
             return _run(vo, StepHistory(keep_error_bases), seq, out, config, max_frames, plots, progress, bag_out)
@@ -418,8 +416,7 @@ def calibrate_sequence(
     T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
     if len(T_est) < 10:
         with_truth = calibration_pairs(result.steps, lookup, config, require_clock=False)
-        tracked = [s for s in result.steps if s.has_relative_pose and s.velocity is not None and not s.flagged
-                   and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1]
+        tracked = calibration_pairs(result.steps, None, config, require_clock=False)
         clock = (" and both frames placed by the frame clock, which places the stamps from the 20th frame on"
                  if config.sensor.frame_clock else "")
         raise InputError(f"{seq.path}: the fit needs at least 10 consecutive tracked frame pairs with usable ground "
@@ -437,15 +434,17 @@ def calibrate_sequence(
                             fixed=fixed), result
 
 
-def calibration_pairs(steps, lookup: dict, config: OdometryConfig, require_clock: bool = True) -> list[OdometryStep]:
+def calibration_pairs(steps, lookup: dict | None, config: OdometryConfig, require_clock: bool = True
+                      ) -> list[OdometryStep]:
     """The steps a fit of the sensor terms uses: tracked consecutive pairs (one frame interval) with a
-    velocity and ground truth at both frames (``lookup``: stamp -> pose), not flagged by the integrity
-    check, with ``require_clock`` both frames placed by the frame clock (when it is on)."""
+    velocity and ground truth at both frames (``lookup``: stamp -> pose; None: ground truth not
+    required), not flagged by the integrity check, with ``require_clock`` both frames placed by the
+    frame clock (when it is on)."""
     clocked = {s.timestamp for s in steps if s.clock_samples or not config.sensor.frame_clock or not require_clock}
     return [s for s in steps if s.has_relative_pose and s.velocity is not None and not s.flagged
             and s.timestamp in clocked and s.ref_timestamp in clocked
             and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1
-            and s.ref_timestamp in lookup and s.timestamp in lookup]
+            and (lookup is None or (s.ref_timestamp in lookup and s.timestamp in lookup))]
 
 
 def prior_covariances(steps, priors: dict[str, float]) -> np.ndarray | None:

@@ -40,8 +40,7 @@ from .covariance import tangent_to_ros
 from .errors import ConfigError, DatasetError
 from .geometry import matrix_to_quat
 
-__all__ = ["BAG_FORMATS", "OdometryBagWriter", "bag_output_path", "clear_bag_output", "is_covo_bag",
-           "require_rosbags"]
+__all__ = ["BAG_FORMATS", "OdometryBagWriter", "bag_output_path", "clear_bag_output", "require_rosbags"]
 
 BAG_FORMATS = ("ros1", "ros2")
 ODOMETRY_TOPIC = "/covo/odometry"
@@ -89,17 +88,10 @@ def _bag_topics(path: Path) -> tuple[set[str] | None, str]:
         return None, " ".join(str(exc).split()) or type(exc).__name__
 
 
-def is_covo_bag(path: Path) -> bool:
-    """True for a bag covo wrote: a ROS 1 bag file or a ROS 2 bag folder (not a symlink) whose
-    topics are covo's own (:data:`ODOMETRY_TOPIC`, :data:`RELATIVE_TOPIC`). Anything else at a
-    bag output's path is the user's."""
-    topics, _ = _bag_topics(path)
-    return bool(topics) and topics <= {ODOMETRY_TOPIC, RELATIVE_TOPIC}
-
-
 def clear_bag_output(out_dir: str | os.PathLike, fmt: str, inputs: tuple = (), remove: bool = True) -> None:
     """Make the bag output's path of ``fmt`` in ``out_dir`` free: an earlier bag covo wrote there
-    is removed (with ``remove``; without, only checked), nothing else is ever removed.
+    (its topics are covo's own, :data:`ODOMETRY_TOPIC` and :data:`RELATIVE_TOPIC`; anything else is
+    the user's) is removed (with ``remove``; without, only checked), nothing else is ever removed.
 
     Raises:
         DatasetError: something else is there (a user's file, folder or bag, or a bag that cannot be
@@ -120,7 +112,7 @@ def clear_bag_output(out_dir: str | os.PathLike, fmt: str, inputs: tuple = (), r
     topics, why = _bag_topics(path)
     if topics is None:
         raise DatasetError(f"{path}: exists and cannot be recognised as a bag covo wrote ({why}); remove it first")
-    if not topics or not topics <= {ODOMETRY_TOPIC, RELATIVE_TOPIC}:
+    if not topics or not topics <= {ODOMETRY_TOPIC, RELATIVE_TOPIC}:  # covo's bags have both
         raise DatasetError(f"{path}: exists and is not a bag written by covo (topics {', '.join(sorted(topics))}); "
                            "remove it first")
     if remove:

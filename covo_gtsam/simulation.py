@@ -25,8 +25,8 @@ from .estimator import estimate_relative_pose
 from .geometry import pose_from_tum
 from .noise import KinectAxialNoise, PixelNoise, PointNoiseModel
 from .choices import Weighting
-from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, MIN_SCALE, check_real, check_settings, choice, integer,
-                         is_real, number)
+from .validation import (MAX_PIXEL_SIGMA, MAX_SCALE, MIN_PIXEL_SIGMA, MIN_SCALE, check_real, check_settings, choice,
+                         integer, is_real, number)
 
 #: The thesis's motion, TUM order tx ty tz qx qy qz qw (quaternion normalised on use).
 THESIS_MOTION = (0.6, 0.6, 0.05, -0.183, -0.183, 0.0, 0.966)
@@ -58,7 +58,8 @@ class SimulationConfig:
                                 maximum=MAX_PIXEL_SIGMA)
     depth_range: tuple[float, float] = (0.5, 5.0)
     weighting: Weighting = choice(Weighting.CONSISTENT, "weighting of the residuals", Weighting)
-    scale: float = number(1.0, "the thesis's covariance scale phi", "factor", minimum=MIN_SCALE, maximum=MAX_SCALE)
+    scale: float = number(1.0, "the thesis's covariance scale phi", "factor", minimum=MIN_SCALE,
+                          maximum=MAX_SCALE)
     motion: tuple[float, ...] = THESIS_MOTION
     camera: str = "fr1"
     depth_model: KinectAxialNoise = field(default_factory=KinectAxialNoise)

@@ -47,6 +47,9 @@ MODELS = {"kappa + frame term": (True, ()), "+ timing": (True, ("timing",)),
           "+ latency, kappa 1": (False, LATENCY_TERMS),
           "+ latency, depth scale, depth time; kappa 1 (default)": (False, DEFAULT_TERMS)}
 CHAIN = 30
+#: the pairs the per-pair tables report: sequence, then (label, first and last frame a pair ends at)
+SEGMENTS = ((RPY, (("fr1_rpy, frames 1-119", 1, 119), ("fr1_rpy, frames 120-239", 120, 239))),
+            (DESK, (("fr1_desk", 1, 10**9),)))
 
 
 def per_point_pairs(data: Path, name: str, **sensor) -> dict:
@@ -205,8 +208,7 @@ def moved_table(data: Path) -> list[str]:
              "included (the delay table above leaves it out).", "",
              "| pairs | " + " | ".join(f"L = {1e3 * L:+.1f} ms" for L in delays) + " |",
              "|---" * (len(delays) + 1) + "|"]
-    for name, ranges in ((RPY, (("fr1_rpy, frames 1-119", 1, 119), ("fr1_rpy, frames 120-239", 120, 239))),
-                         (DESK, (("fr1_desk", 1, 10**9),))):
+    for name, ranges in SEGMENTS:
         seq = TumSequence(data / "tum" / name)
         index = {t: i for i, t in enumerate(seq.timestamps)}
         steps = {index[s.timestamp]: s for s in every_nth(seq, OdometryConfig(), 1)}
@@ -431,22 +433,10 @@ def persistence_table(data: Path) -> list[str]:
              "pairs, above 1 where a pair's error persists into the next ones, below 1 where the next pairs undo "
              "it). With independent between factors a chain's ANEES is about its pairs' ANEES times this ratio.", "",
              "| pairs | " + " | ".join(f"chains of {w}" for w in lengths) + " |", "|---" * (len(lengths) + 1) + "|"]
-    squared = np.stack([np.sum(p["err"][:, 3:] ** 2, axis=1), np.sum(p["err"][:, :3] ** 2, axis=1)], axis=1)
-    windows = {}  # w -> first and last frame, chain's and pairs' squared errors t / r of every window
-    for w in lengths:
-        est, _ = compose_chains(p["T_est"], p["cov"], w)
-        true, _ = compose_chains(p["T_true"], p["cov"], w)
-        e = relative_pose_tangent_errors(est, true)
-        windows[w] = (p["end"][:len(est)], p["end"][w - 1:],
-                      np.stack([np.sum(e[:, 3:] ** 2, axis=1), np.sum(e[:, :3] ** 2, axis=1)], axis=1),
-                      np.array([squared[s:s + w].sum(axis=0) for s in range(len(est))]))
     for label, lo, hi in (("frames 1-119", 1, 119), ("frames 120-239", 120, 239), ("all", 1, 239)):
-        cells = []
-        for w in lengths:
-            first, last, chain, pairs = windows[w]
-            m = (first >= lo) & (last <= hi) & (last - first == w - 1)
-            ratio = chain[m].mean(axis=0) / pairs[m].mean(axis=0)
-            cells.append(f"{ratio[0]:.2f} / {ratio[1]:.2f}")
+        m = (p["end"] >= lo) & (p["end"] <= hi)
+        ratios = [persistence(p["T_est"][m], p["T_true"][m], p["end"][m], w) for w in lengths]
+        cells = [f"{t:.2f} / {r:.2f}" for t, r in ratios]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines + [""]
 
@@ -511,8 +501,7 @@ def independent_table(data: Path) -> list[str]:
         "| correlation rotation x / y / z | correlation translation x / y / z | common rotation / translation "
         "| best shift (ms): RMS rotation covo / OpenCV, common rotation / translation "
         "| chains of 30, translation: covo / OpenCV / difference |", "|---|---|---|---|---|---|---|---|---|"]
-    for name, ranges in ((RPY, (("fr1_rpy, frames 1-119", 1, 119), ("fr1_rpy, frames 120-239", 120, 239))),
-                         (DESK, (("fr1_desk", 1, 10**9),))):
+    for name, ranges in SEGMENTS:
         seq = TumSequence(data / "tum" / name)
         lookup = ground_truth_lookup(seq)
         index = {t: i for i, t in enumerate(seq.timestamps)}
@@ -543,7 +532,7 @@ def independent_table(data: Path) -> list[str]:
                               " / ".join(f"{c:.2f}" for c in corr[:3]), " / ".join(f"{c:.2f}" for c in corr[3:]),
                               f"{common[0]:.2f} / {common[1]:.2f}"]
                     run = ends[m][ok]
-                    chains = [persistence(est[k][m][ok], true[ok], run, CHAIN) for k in est]
+                    chains = [persistence(est[k][m][ok], true[ok], run, CHAIN)[0] for k in est]
                     chains.append(persistence_of_sums(x[:, 3:] - y[:, 3:], run, CHAIN))
                 else:
                     cells.append(f"{1e3 * shift:+.1f}: {rms['covo'][0]:.3f} / {rms['OpenCV'][0]:.3f}, "
@@ -560,17 +549,20 @@ def _windows(ends: np.ndarray, w: int) -> np.ndarray:
     return np.flatnonzero(ends[w - 1:] - ends[:len(ends) - w + 1] == w - 1)
 
 
-def persistence(est: np.ndarray, true: np.ndarray, ends: np.ndarray, w: int) -> float:
-    """Mean squared translation error of the chains of ``w`` consecutive pairs (end frames
-    ``ends``, windows across a gap left out) over the mean sum of their pairs' squared translation
+def persistence(est: np.ndarray, true: np.ndarray, ends: np.ndarray, w: int) -> np.ndarray:
+    """Translation and rotation (2,): mean squared error of the chains of ``w`` consecutive pairs
+    (end frames ``ends``, windows across a gap left out) over the mean sum of their pairs' squared
     errors; NaN without such a chain."""
     starts = _windows(ends, w)
     if not len(starts):
-        return float("nan")
+        return np.full(2, np.nan)
     zero = np.zeros((len(est), 6, 6))
     chain = relative_pose_tangent_errors(compose_chains(est, zero, w)[0], compose_chains(true, zero, w)[0])[starts]
-    sq = np.sum(relative_pose_tangent_errors(est, true)[:, 3:] ** 2, axis=1)
-    return float(np.mean(np.sum(chain[:, 3:] ** 2, axis=1)) / np.mean([sq[s:s + w].sum() for s in starts]))
+    e = relative_pose_tangent_errors(est, true)
+    sq = np.stack([np.sum(e[:, 3:] ** 2, axis=1), np.sum(e[:, :3] ** 2, axis=1)], axis=1)
+    chain_sq = np.stack([np.sum(chain[:, 3:] ** 2, axis=1), np.sum(chain[:, :3] ** 2, axis=1)], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # no error at all: NaN
+        return chain_sq.mean(axis=0) / np.array([sq[s:s + w].sum(axis=0) for s in starts]).mean(axis=0)
 
 
 def persistence_of_sums(e: np.ndarray, ends: np.ndarray, w: int) -> float:

@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from covo_gtsam.datasets.tum import TumSequence
 from covo_gtsam.evaluation import ground_truth_lookup
@@ -57,7 +58,10 @@ def test_persistence_ratios_count_only_chains_of_consecutive_pairs():
     est = true.copy()
     est[:, 0, 3] += 1e-3  # one error repeated in every pair: a chain's error is w times a pair's
     ends = np.arange(1, n + 1)
-    assert study.persistence(est, true, ends, w) == pytest.approx(w, rel=1e-6)
+    assert study.persistence(est, true, ends, w)[0] == pytest.approx(w, rel=1e-6)  # translation
+    turned = true.copy()
+    turned[:, :3, :3] = Rotation.from_rotvec([0.0, 0.0, 1e-3]).as_matrix()  # the same rotation error each pair
+    assert study.persistence(turned, true, ends, w)[1] == pytest.approx(w, rel=1e-6)
     errors = np.tile([1e-3, 0.0, 0.0], (n, 1))
     assert study.persistence_of_sums(errors, ends, w) == pytest.approx(w)
     alternating = errors * np.where(np.arange(n) % 2, 1.0, -1.0)[:, None]  # each pair undoes the last
@@ -65,4 +69,4 @@ def test_persistence_ratios_count_only_chains_of_consecutive_pairs():
     # a gap in the end frames: no window across it
     gapped = np.concatenate([np.arange(1, 4), np.arange(10, 10 + n - 3)])
     assert len(study._windows(gapped, w)) == n - 3 - w + 1
-    assert np.isnan(study.persistence(est[:w + 1], true[:w + 1], gapped[:w + 1] * 3, w))
+    assert np.isnan(study.persistence(est[:w + 1], true[:w + 1], gapped[:w + 1] * 3, w)).all()

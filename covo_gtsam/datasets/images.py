@@ -47,13 +47,18 @@ def _png_size(path: str) -> tuple[int, int] | None:
     return int.from_bytes(head[20:24], "big"), int.from_bytes(head[16:20], "big")
 
 
-def _check_size(path: str, shape: tuple[int, int] | None, what: str, expected: str = "expected") -> None:
+def _wrong_size(path: str, what: str, size: tuple[int, ...], shape: tuple[int, int], expected: str) -> InputError:
+    """The error of an image of ``size`` (height, width) where ``shape`` was expected."""
+    return InputError(f"{path}: {what} is {size[1]}x{size[0]}, {expected} {shape[1]}x{shape[0]}")
+
+
+def _check_size(path: str, shape: tuple[int, int] | None, what: str, expected: str) -> None:
     """A PNG's pixel count from its header against the expected ``(height, width)``, before any
     decoding (a small file can declare a huge image; the exact shape is checked after decoding, as
     an orientation tag may turn the image)."""
     size = None if shape is None else _png_size(path)
     if size is not None and size[0] * size[1] != shape[0] * shape[1]:
-        raise InputError(f"{path}: {what} is {size[1]}x{size[0]}, {expected} {shape[1]}x{shape[0]}")
+        raise _wrong_size(path, what, size, shape, expected)
 
 
 def load_grey(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -72,7 +77,7 @@ def load_grey(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> 
     if img is None:
         raise InputError(f"{p}: image is unreadable or corrupt")
     if shape is not None and img.shape != tuple(shape):
-        raise InputError(f"{p}: image is {img.shape[1]}x{img.shape[0]}, the camera's is {shape[1]}x{shape[0]}")
+        raise _wrong_size(p, "image", img.shape, shape, "the camera's is")
     return img
 
 
@@ -204,7 +209,7 @@ def load_depth(
     if not (depth_scale > 0 and math.isfinite(depth_scale)):
         raise InputError(f"depth_scale must be a positive number, got {depth_scale!r}")
     p = _check_file(path, "depth")
-    _check_size(p, shape, "depth image")
+    _check_size(p, shape, "depth image", "expected")
     found = _png_bytes(p, ((0, 16),))
     if found is None:
         raw = cv2.imread(p, cv2.IMREAD_UNCHANGED)
@@ -219,8 +224,7 @@ def load_depth(
         raise InputError(
             f"{p}: depth image is {bits}-bit {raw.dtype}, expected 16-bit (uint16, value/{depth_scale:g} = metres)")
     if shape is not None and raw.shape != tuple(shape):
-        raise InputError(
-            f"{p}: depth image is {raw.shape[1]}x{raw.shape[0]}, expected {shape[1]}x{shape[0]}")
+        raise _wrong_size(p, "depth image", raw.shape, shape, "expected")
     return np.multiply(raw, np.float32(1.0 / depth_scale), dtype=np.float32)  # one pass: the same values
 
 

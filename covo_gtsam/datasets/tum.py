@@ -299,9 +299,6 @@ class TumSequence:
         camera = self.camera if camera is None else camera
         depth_scale = self.depth_scale if depth_scale is None else depth_scale
         grey = load_grey(self.rgb_paths[i], shape=(camera.height, camera.width))
-        if grey.shape != (camera.height, camera.width):
-            raise InputError(f"{self.rgb_paths[i]}: image is {grey.shape[1]}x{grey.shape[0]}, the camera's is "
-                             f"{camera.width}x{camera.height}")
         return grey, load_depth(self.depth_paths[i], depth_scale, shape=(camera.height, camera.width))
 
     def loader(self, camera=None, depth_scale: float | None = None):
