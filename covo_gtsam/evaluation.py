@@ -21,6 +21,7 @@ from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
 from .geometry import invert_pose
 from .metrics import ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
+from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
 from .reference_noise import reference_jitter
 
@@ -48,18 +49,17 @@ def consistency_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray) -> dict:
     }
 
 
+def pairs_with_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]) -> list[OdometryStep]:
+    """The tracked pairs (in run order) with ground truth at both frames."""
+    return [s for s in steps if s.status == "tracked" and s.ref_timestamp in stamp_to_gt and s.timestamp in stamp_to_gt]
+
+
 def relative_ground_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]):
     """Estimated and true T_ref,cur (K, 4, 4) and covariances (K, 6, 6) of the tracked pairs with ground truth."""
-    est, true, covs = [], [], []
-    for s in steps:
-        if s.status != "tracked":
-            continue
-        g_ref, g_cur = stamp_to_gt.get(s.ref_timestamp), stamp_to_gt.get(s.timestamp)
-        if g_ref is None or g_cur is None:
-            continue
-        est.append(s.relative.matrix())
-        true.append(invert_pose(g_ref) @ g_cur)
-        covs.append(s.covariance)
+    pairs = pairs_with_truth(steps, stamp_to_gt)
+    est = [s.relative.matrix() for s in pairs]
+    true = [invert_pose(stamp_to_gt[s.ref_timestamp]) @ stamp_to_gt[s.timestamp] for s in pairs]
+    covs = [s.covariance for s in pairs]
     return np.array(est).reshape(-1, 4, 4), np.array(true).reshape(-1, 4, 4), np.array(covs).reshape(-1, 6, 6)
 
 
@@ -148,7 +148,7 @@ class RunEvaluation:
 
     Without ground truth only the frame counts, lost frames, timing and flagged pairs are filled
     in (``has_ground_truth`` False). With it, a statistic that cannot be computed is None and
-    ``not_computed[name]`` says why (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``,
+    ``not_computed[name]`` says why (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``, ``"nees_breakdown"``,
     ``"reference_jitter"``); its array, if it has one, is then empty, or holds the values that made it
     fail (not finite).
     """
@@ -176,6 +176,9 @@ class RunEvaluation:
     consistency: dict | None = None
     #: :func:`chain_statistics` of chains of :data:`CHAIN_PAIRS` pairs
     chains: dict | None = None
+    #: the pairs' NEES by true motion, in windows and in the tails
+    #: (:func:`~covo_gtsam.nees_breakdown.nees_breakdown`)
+    breakdown: dict | None = None
     #: the ground truth's own noise over the run's time span (:func:`reference_statistics`)
     reference: dict | None = None
     not_computed: dict[str, str] = field(default_factory=dict)
@@ -212,7 +215,7 @@ class RunEvaluation:
     def to_dict(self) -> dict:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then with ground truth
         ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`,
-        ``chains`` and ``reference_jitter``, then ``self_calibration`` and ``version`` when they are set."""
+        ``chains``, ``nees_breakdown`` and ``reference_jitter``, then ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
             "sequence": self.sequence,
             "frames": self.frames,
@@ -234,6 +237,7 @@ class RunEvaluation:
             out["ate"] = self.ate
             out.update(self.consistency or dict.fromkeys(CONSISTENCY_KEYS))
             out["chains"] = self.chains
+            out["nees_breakdown"] = self.breakdown
             out["reference_jitter"] = self.reference
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
@@ -298,6 +302,15 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
         return chain_statistics(ev.chain_nees_rotation, ev.chain_nees_translation)
 
     ev.chains = _computed(ev.not_computed, "chains", chains, no_pairs)
+
+    def breakdown():
+        if ev.consistency is None:
+            raise InputError("the pairs' NEES could not be computed")
+        pairs = pairs_with_truth(steps, gt)
+        return nees_breakdown(T_true, np.array([s.ref_timestamp for s in pairs]),
+                              np.array([s.timestamp for s in pairs]), ev.nees_rotation, ev.nees_translation)
+
+    ev.breakdown = _computed(ev.not_computed, "nees_breakdown", breakdown, no_pairs)
     samples = getattr(seq, "gt_samples", None)
     ev.reference = _computed(
         ev.not_computed, "reference_jitter", partial(reference_statistics, samples, steps),

@@ -31,8 +31,9 @@ from covo_gtsam.calibration import (  # noqa: E402
 from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.covariance import compose_chains, compose_covariance  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
-from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
+from covo_gtsam.evaluation import ground_truth_lookup, pairs_with_truth, relative_ground_truth  # noqa: E402
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors, se3_log  # noqa: E402
+from covo_gtsam.nees_breakdown import ACCELERATION_EDGES, by_bins, true_motion  # noqa: E402
 from covo_gtsam.pipeline import calibration_pairs, prior_covariances, run_sequence, stacked_bases  # noqa: E402
 
 RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
@@ -338,6 +339,70 @@ def motion_table(data: Path) -> list[str]:
     return lines + [""]
 
 
+def acceleration_table(data: Path) -> list[str]:
+    """The default model's ANEES on consecutive pairs of fr1_rpy by the true angular acceleration
+    (:func:`covo_gtsam.nees_breakdown.true_motion`, as ``metrics.json``'s ``nees_breakdown``)."""
+    seq = TumSequence(data / "tum" / RPY)
+    lookup = ground_truth_lookup(seq)
+    steps = pairs_with_truth(every_nth(seq, OdometryConfig(), 1), lookup)
+    T_est, T_true, covs = relative_ground_truth(steps, lookup)
+    nt, nr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
+    _, accel = true_motion(T_true, [s.ref_timestamp for s in steps], [s.timestamp for s in steps])
+    index = {t: i for i, t in enumerate(seq.timestamps)}
+    end = np.array([index[s.timestamp] for s in steps])
+    halves = (("frames 1-119", end <= 119), ("frames 120-239", end >= 120), ("all", end >= 0))
+    cols = [by_bins(np.where(m, accel, np.nan), ACCELERATION_EDGES, nr, nt) for _, m in halves]
+    lines = ["## By the true angular acceleration", "",
+             "The default model's ANEES t / r (pairs) on the consecutive pairs of fr1_rpy, by the change of the true "
+             "angular velocity from the pair before over the interval (rad/s^2; metrics.json's nees_breakdown). A "
+             "consistent model gives about 3 in every bin.", "",
+             "| angular acceleration (rad/s^2) | " + " | ".join(label for label, _ in halves) + " |",
+             "|---" * (len(halves) + 1) + "|"]
+    for i, b in enumerate(cols[0]):
+        lo, hi = b["range"]
+        cells = [f"{c[i]['anees_translation']:.2f} / {c[i]['anees_rotation']:.2f} ({c[i]['pairs']})"
+                 if c[i]["pairs"] else "—" for c in cols]
+        lines.append(f"| {lo:g}-{hi:g} | " if hi is not None else f"| above {lo:g} | ")
+        lines[-1] += " | ".join(cells) + " |"
+    return lines + [""]
+
+
+def speed_term_table(data: Path) -> list[str]:
+    """The default terms with one more: a rotation error per axis growing with the pair's estimated
+    angular speed, ``sigma^2 |omega|^2 I`` (a timing error of the whole frame, the same about every
+    axis), fitted on one half of fr1_rpy and checked on the other and on fr1_desk."""
+    from covo_gtsam.calibration import log_likelihood
+
+    def with_speed(p: dict) -> dict:
+        w2 = np.sum((se3_log(p["T_est"])[:, :3] * 30.0) ** 2, axis=1)  # (rad/s)^2, 30 Hz pairs
+        B = np.zeros((len(w2), 6, 6))
+        B[:, [0, 1, 2], [0, 1, 2]] = w2[:, None]
+        return {**p, "bases": {**p["bases"], "speed": B}}
+
+    rpy, desk = with_speed(per_point_pairs(data, RPY)), with_speed(per_point_pairs(data, DESK))
+    A = rpy["end"] <= 119
+    lines = ["## A rotation term growing with the angular speed", "",
+             "The default terms, and the same with one more: a rotation error of sigma times the pair's estimated "
+             "angular speed about each axis (a whole frame's timing error, alike about every axis), fitted on the "
+             "consecutive pairs of one half of fr1_rpy. Log-likelihood per pair and ANEES t / r on each check; the "
+             "frame term (constant per frame interval) as fitted alongside.", "",
+             "| fitted on | terms | frame term (deg) | speed term (ms) | checked on | ANEES t / r | log-likelihood |",
+             "|---|---|---|---|---|---|---|"]
+    for name, mask in (("A", A), ("B", ~A)):
+        train = subset(rpy, mask & rpy["fit_ok"])
+        for terms in (DEFAULT_TERMS, (*DEFAULT_TERMS, "speed")):
+            fit = fit_sensor_terms(train["err"], train["cov"], False, bases={n: train["bases"][n] for n in terms},
+                                   fixed=train["fixed"])
+            speed = f"{1e3 * fit.sigmas['speed']:.2f}" if "speed" in terms else "—"
+            for check, held in (("A" if name == "B" else "B", subset(rpy, ~mask)), ("fr1_desk", desk)):
+                covs = fit.covariances(held["cov"], {n: held["bases"][n] for n in terms}) + held["fixed"]
+                nt, nr = anees_cells(held["err"], covs)
+                lines.append(f"| {name} | {'default + speed' if 'speed' in terms else 'default'} | "
+                             f"{fit.frame_sigma_rot_deg:.3f} | {speed} | {check} | {nt.mean():.2f} / {nr.mean():.2f} | "
+                             f"{log_likelihood(held['err'], covs):.2f} |")
+    return lines + [""]
+
+
 def closure_table(data: Path) -> list[str]:
     """Closures of overlapping pairs on fr1_rpy: the pairs (k-1, k) and (k, k+1) of a frame-to-frame run
     against the pair (k-1, k+1) of a run over every other frame, ``d = Log(T_skip^-1 T_a T_b)``; the
@@ -582,7 +647,8 @@ def main() -> None:
     lines = ["# Cross-validation of the sensor terms", "", __doc__.split("\n\n", 2)[2].strip(), "",
              "*Generated by `python studies/cross_validation.py`; do not edit by hand.*", ""]
     lines += (tables(args.data) + moved_table(args.data) + window_table(args.data) + stride_table(args.data)
-              + motion_table(args.data) + closure_table(args.data) + persistence_table(args.data)
+              + motion_table(args.data) + acceleration_table(args.data) + speed_term_table(args.data)
+              + closure_table(args.data) + persistence_table(args.data)
               + reference_table(args.data) + independent_table(args.data))
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -13,7 +13,7 @@ from conftest import SAMPLE_DIR
 BASE_KEYS = ["sequence", "frames", "tracked_frames", "lost_frames", "lost", "restarts", "unassociated", "elapsed_s",
              "frames_per_second", "mean_pairs", "flagged_pairs", "flagged"]
 GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS, "chains",
-           "reference_jitter"]
+           "nees_breakdown", "reference_jitter"]
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +52,11 @@ def test_statistics_summarise_the_arrays_kept(sample_run):
     assert ev.to_dict()["chains"] == ev.chains and ev.chains["anees_translation"] > 0
     assert ev.chain_nees_translation.size == ev.chain_nees_rotation.size == 5
     assert ev.chains["anees_translation"] == np.mean(ev.chain_nees_translation)
+    # the breakdown covers every pair once per binning (the first has no acceleration); 34 pairs, no full window
+    bd = ev.breakdown
+    assert sum(b["pairs"] for b in bd["by_angular_speed_rad_s"]) == ev.consistency["nees_pairs"] == 34
+    assert sum(b["pairs"] for b in bd["by_angular_acceleration_rad_s2"]) == 33
+    assert bd["tails_translation"]["largest"] == ev.nees_translation.max() and bd["windows"] is None
     assert ev.tracked_frames + ev.lost_frames == ev.frames == 35
     assert set(ev.ground_truth) >= {s.timestamp for s in sample_run.steps if s.tracked}
 
