@@ -243,15 +243,20 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     seq = _sequence(args)
     _check_config_fits(args, config, seq)
     out = check_output_dir(args.out)
-    reference_sd = None
-    if args.reference_jitter:
-        from .reference_noise import reference_jitter
+    reference_sd, no_jitter = None, None
+    if not args.jitter_in_terms:
+        import numpy as np
 
-        jitter = None if seq.gt_samples is None else reference_jitter(*seq.gt_samples)
-        if jitter is None:
-            raise CovoError(f"{seq.path}: --reference-jitter needs the ground truth's own samples, evenly spaced "
-                            "(groundtruth.txt with at least 13 of them)")
-        reference_sd = jitter["rotation_rad"]
+        from .errors import InputError
+        from .evaluation import reference_statistics
+
+        try:
+            if seq.gt_samples is None:
+                raise InputError("no samples of its own")
+            reference_sd = np.deg2rad(reference_statistics(seq.gt_samples)["rotation_deg"])
+        except InputError as exc:
+            no_jitter = (f"covo: warning: {seq.path}: the ground truth's own jitter cannot be measured ({exc}; it "
+                         "needs evenly spaced samples, at least 13); the fitted terms take it in")
     with _lock_outputs(out, ["calibration.json"]):
         fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
                                          progress=not args.quiet, reference_sd=reference_sd)
@@ -262,6 +267,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                    "reference_jitter_held_deg": (None if reference_sd is None
                                                  else [math.degrees(float(x)) for x in reference_sd])}
         write_json(out / "calibration.json", summary)
+        if no_jitter:
+            print(no_jitter, file=sys.stderr)
         anees_t, anees_r = summary["per_point_model_anees"]
         anees = (f"ANEES t {anees_t:.2f} r {anees_r:.2f} (3 = consistent)"
                  if anees_t is not None and anees_r is not None else "no ANEES (see per_point_run/metrics.json)")

@@ -245,11 +245,11 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
                           "places the stamps from the 20th frame on; default: all)")
     cal.add_argument("--config", metavar="FILE",
                      help="TOML or JSON settings for the run; its sensor terms are ignored (see README)")
-    cal.add_argument("--reference-jitter", action="store_true",
-                     help="hold the ground truth's own rotation jitter, measured from all its samples (as "
-                     "reference_jitter in metrics.json, which covers a run's time span only), as a known term: the "
-                     "fitted terms then describe the camera alone (default: the fitted terms take in the camera's "
-                     "error and the ground truth's jitter, as the defaults did)")
+    cal.add_argument("--jitter-in-terms", action="store_true",
+                     help="let the fitted terms take in the ground truth's own rotation jitter too (default: that "
+                     "jitter, measured from all its samples as reference_jitter in metrics.json, is held as a known "
+                     "term, so the terms describe the camera alone and covo's NEES adds the reference's jitter back "
+                     "when it checks against one)")
     _output_arguments(cal, plots=False)
     cal.set_defaults(func=handlers["calibrate"])
     return parser

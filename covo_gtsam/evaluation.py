@@ -23,7 +23,7 @@ from .geometry import invert_pose
 from .metrics import ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
-from .reference_noise import reference_jitter
+from .reference_noise import pair_jitter_covariances, reference_jitter
 
 #: RPE intervals (frames) reported by ``covo run``.
 RPE_DELTAS = (1, 30)
@@ -70,15 +70,16 @@ def chain_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray, length: int = CH
 
 
 def chain_nees(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
-               length: int = CHAIN_PAIRS) -> tuple[np.ndarray, np.ndarray]:
+               length: int = CHAIN_PAIRS, jitter=None) -> tuple[np.ndarray, np.ndarray]:
     """NEES of the rotation and of the translation (M,) of every chain of ``length`` linked tracked
     pairs, the covariance composed as independent between factors compose it
     (:func:`~covo_gtsam.covariance.compose_chains`), against the ground truth between the chain's
     ends. A pair links to the pair that ends at its reference frame: frame to frame the previous
     one (across lost frames too), with keyframes the keyframe's own. A chain stops at a restart and
-    at a frame without ground truth. :class:`InputError` when no chain is that long."""
-    pairs = [s for s in steps if s.status == "tracked" and s.ref_timestamp in stamp_to_gt
-             and s.timestamp in stamp_to_gt]
+    at a frame without ground truth. ``jitter(ref_stamps, cur_stamps)``, if given, is what the
+    reference's own noise adds to the error between two frames (N, 6, 6), added at the chains' ends.
+    :class:`InputError` when no chain is that long."""
+    pairs = pairs_with_truth(steps, stamp_to_gt)
     ending = {s.timestamp: i for i, s in enumerate(pairs)}
     chains = []
     for i in range(len(pairs)):
@@ -92,8 +93,11 @@ def chain_nees(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarra
     index = np.array(chains)
     T_chain, C_chain = compose_chains(np.array([s.relative.matrix() for s in pairs]),
                                       np.array([s.covariance for s in pairs]), index)
-    starts = np.array([stamp_to_gt[pairs[c[0]].ref_timestamp] for c in chains])
-    ends = np.array([stamp_to_gt[pairs[c[-1]].timestamp] for c in chains])
+    first, last = [pairs[c[0]].ref_timestamp for c in chains], [pairs[c[-1]].timestamp for c in chains]
+    if jitter is not None:
+        C_chain = C_chain + jitter(np.array(first), np.array(last))
+    starts = np.array([stamp_to_gt[t] for t in first])
+    ends = np.array([stamp_to_gt[t] for t in last])
     return relative_pose_nees(T_chain, invert_pose(starts) @ ends, C_chain)
 
 
@@ -179,8 +183,10 @@ class RunEvaluation:
     #: the pairs' NEES by true motion, in windows and in the tails
     #: (:func:`~covo_gtsam.nees_breakdown.nees_breakdown`)
     breakdown: dict | None = None
-    #: the ground truth's own noise over the run's time span (:func:`reference_statistics`)
+    #: the ground truth's own noise (:func:`reference_statistics`)
     reference: dict | None = None
+    #: whether the NEES values take the ground truth's own jitter into account (its samples were at hand)
+    nees_with_reference_jitter: bool = False
     not_computed: dict[str, str] = field(default_factory=dict)
     #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
@@ -215,7 +221,7 @@ class RunEvaluation:
     def to_dict(self) -> dict:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then with ground truth
         ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`,
-        ``chains``, ``nees_breakdown`` and ``reference_jitter``, then ``self_calibration`` and ``version`` when they are set."""
+        ``chains``, ``nees_breakdown``, ``reference_jitter`` and ``nees_with_reference_jitter``, then ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
             "sequence": self.sequence,
             "frames": self.frames,
@@ -239,6 +245,7 @@ class RunEvaluation:
             out["chains"] = self.chains
             out["nees_breakdown"] = self.breakdown
             out["reference_jitter"] = self.reference
+            out["nees_with_reference_jitter"] = self.nees_with_reference_jitter
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
         if self.version is not None:
@@ -289,7 +296,19 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
     ev.ate = _computed(ev.not_computed, "ate", ate,
                        no_gt or (None if ate_parts else "no segment has 3 tracked frames with ground truth"))
-    T_est, T_true, covs = relative_ground_truth(steps, gt)
+    samples = getattr(seq, "gt_samples", None)
+    ev.reference = _computed(
+        ev.not_computed, "reference_jitter", partial(reference_statistics, samples),
+        "no frame was processed" if not steps else None if samples is not None else
+        "the ground truth's own samples are not at hand (only its poses at the frames)")
+    # what the reference's own jitter adds to each error measured against it (pair or chain ends)
+    jitter = None if ev.reference is None else reference_covariances(samples, ev.reference)
+    ev.nees_with_reference_jitter = jitter is not None
+    pairs = pairs_with_truth(steps, gt)
+    T_est, T_true, covs = relative_ground_truth(pairs, gt)
+    ref_stamps, cur_stamps = np.array([s.ref_timestamp for s in pairs]), np.array([s.timestamp for s in pairs])
+    if jitter is not None and len(pairs):
+        covs = covs + jitter(ref_stamps, cur_stamps)
 
     def consistency():
         ev.nees_rotation, ev.nees_translation = relative_pose_nees(T_est, T_true, covs)
@@ -297,8 +316,9 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
     no_pairs = None if len(T_est) else "no tracked frame pair has ground truth at both frames"
     ev.consistency = _computed(ev.not_computed, "anees", consistency, no_pairs)
+
     def chains():
-        ev.chain_nees_rotation, ev.chain_nees_translation = chain_nees(steps, gt)
+        ev.chain_nees_rotation, ev.chain_nees_translation = chain_nees(steps, gt, jitter=jitter)
         return chain_statistics(ev.chain_nees_rotation, ev.chain_nees_translation)
 
     ev.chains = _computed(ev.not_computed, "chains", chains, no_pairs)
@@ -306,33 +326,36 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
     def breakdown():
         if ev.consistency is None:
             raise InputError("the pairs' NEES could not be computed")
-        pairs = pairs_with_truth(steps, gt)
-        return nees_breakdown(T_true, np.array([s.ref_timestamp for s in pairs]),
-                              np.array([s.timestamp for s in pairs]), ev.nees_rotation, ev.nees_translation)
+        return nees_breakdown(T_true, ref_stamps, cur_stamps, ev.nees_rotation, ev.nees_translation)
 
     ev.breakdown = _computed(ev.not_computed, "nees_breakdown", breakdown, no_pairs)
-    samples = getattr(seq, "gt_samples", None)
-    ev.reference = _computed(
-        ev.not_computed, "reference_jitter", partial(reference_statistics, samples, steps),
-        "no frame was processed" if not steps else None if samples is not None else
-        "the ground truth's own samples are not at hand (only its poses at the frames)")
     return ev
 
 
-def reference_statistics(samples: tuple[np.ndarray, np.ndarray], steps: Sequence[OdometryStep]) -> dict:
+def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:
     """``metrics.json``'s ``reference_jitter``: the s.d. per axis of the ground truth's own noise per
-    sample (:func:`~covo_gtsam.reference_noise.reference_jitter`) within the run's time span (and
-    0.1 s either side): rotation about the camera's axes in degrees, translation along them in mm."""
+    sample (:func:`~covo_gtsam.reference_noise.reference_jitter`) over all its samples: rotation about
+    the camera's axes in degrees, translation along them in mm."""
     stamps, poses = samples
-    lo, hi = min(s.timestamp for s in steps) - 0.1, max(s.timestamp for s in steps) + 0.1
-    inside = (stamps >= lo) & (stamps <= hi) & usable_poses(poses)
-    out = reference_jitter(stamps[inside], poses[inside])
+    usable = usable_poses(poses)
+    with np.errstate(all="ignore"):  # beyond double precision: not finite, refused below
+        out = reference_jitter(stamps[usable], poses[usable])
     if out is None:
-        raise InputError("too few evenly spaced ground-truth samples in the run's time span")
+        raise InputError("too few evenly spaced ground-truth samples")
     rot, trans = np.rad2deg(out["rotation_rad"]), 1e3 * out["translation_m"]
     if not (np.all(np.isfinite(rot)) and np.all(np.isfinite(trans))):
         raise InputError("not finite (ground truth too large for double precision)")
     return {"rotation_deg": rot.tolist(), "translation_mm": trans.tolist(), "samples": out["samples"]}
+
+
+def reference_covariances(samples: tuple[np.ndarray, np.ndarray], reference: dict | None = None):
+    """``jitter(ref_stamps, cur_stamps)``: what the ground truth's own rotation jitter adds (N, 6, 6)
+    to the error of each pair of frames at those stamps (N,) measured against it
+    (:func:`~covo_gtsam.reference_noise.pair_jitter_covariances`), from its samples ``(stamps,
+    poses)`` and their :func:`reference_statistics` (computed if not given; :class:`InputError` when
+    they do not allow it)."""
+    reference = reference_statistics(samples) if reference is None else reference
+    return partial(pair_jitter_covariances, samples[0], np.deg2rad(reference["rotation_deg"]))
 
 
 #: Keys of :func:`consistency_metrics` (None when it cannot be computed).

@@ -22,7 +22,7 @@ from covo_gtsam.calibration import ERROR_TERMS  # noqa: E402
 from covo_gtsam.chi2 import CHI2_3_975  # noqa: E402
 from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
-from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth  # noqa: E402
+from covo_gtsam.evaluation import ground_truth_lookup, reference_covariances, relative_ground_truth  # noqa: E402
 from covo_gtsam.pipeline import run_sequence  # noqa: E402
 from covo_gtsam.simulation import SimulationConfig, mean_error_z, run_simulation, simulation_result  # noqa: E402
 
@@ -191,7 +191,8 @@ def make_true_pose(cfg):
 
 def pair_errors(seq: TumSequence, steps, cfg: OdometryConfig) -> dict:
     """Per tracked pair with ground truth: tangent error (N, 6), reported covariance (N, 6, 6),
-    frame intervals spanned (N,) and index of the pair's second frame (N,)."""
+    frame intervals spanned (N,), index of the pair's second frame (N,), the pairs' stamps and what
+    the ground truth's own jitter adds between two stamps (``jitter``, as ``metrics.json``'s NEES)."""
     from covo_gtsam.metrics import relative_pose_tangent_errors
 
     lookup = ground_truth_lookup(seq)
@@ -200,7 +201,8 @@ def pair_errors(seq: TumSequence, steps, cfg: OdometryConfig) -> dict:
     index = {t: i for i, t in enumerate(seq.timestamps)}
     return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "T_est": T_est, "T_true": T_true,
             "k": np.array([cfg.frame_intervals(st.timestamp - st.ref_timestamp) for st in kept]),
-            "end": np.array([index[st.timestamp] for st in kept])}
+            "end": np.array([index[st.timestamp] for st in kept]), "jitter": reference_covariances(seq.gt_samples),
+            "t_ref": np.array([st.ref_timestamp for st in kept]), "t_cur": np.array([st.timestamp for st in kept])}
 
 
 def real_tables(data: Path, out_dir: Path, pairs: dict) -> list[str]:
@@ -214,7 +216,6 @@ def real_tables(data: Path, out_dir: Path, pairs: dict) -> list[str]:
     lines += ["| variant | " + " | ".join(s.name for s in seqs) + " |", "|---" * (len(seqs) + 1) + "|"]
     import tempfile
 
-    from covo_gtsam.metrics import relative_pose_nees
     from covo_gtsam.plots import _plt, nees_histogram
 
     tmp = Path(tempfile.mkdtemp(prefix="covo-study-"))
@@ -233,8 +234,7 @@ def real_tables(data: Path, out_dir: Path, pairs: dict) -> list[str]:
             cells.append(cell)
             if name == DEFAULT_VARIANT or name.startswith("thesis, 8 px, phi = 16"):
                 plt = _plt()
-                T_est, T_true, covs = relative_ground_truth(res.steps, ground_truth_lookup(TumSequence(s)))
-                nr, nt = relative_pose_nees(T_est, T_true, covs)
+                nr, nt = res.evaluation.nees_rotation, res.evaluation.nees_translation  # as metrics.json's
                 fig, axes = plt.subplots(1, 2, figsize=(11, 4))
                 nees_histogram(axes[0], nt, f"translation NEES, {s.name}")
                 nees_histogram(axes[1], nr, f"rotation NEES, {s.name}")
@@ -293,6 +293,8 @@ def bad_depth_table(data: Path) -> list[str]:
             steps.append(vo.register_frame(image, depth, seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i]))
         kept = [s for s in steps if s.has_relative_pose and s.ref_timestamp in lookup and s.timestamp in lookup]
         T_est, T_true, covs = relative_ground_truth(kept, lookup)
+        jitter = reference_covariances(seq.gt_samples)
+        covs = covs + jitter([s.ref_timestamp for s in kept], [s.timestamp for s in kept])
         err = relative_pose_tangent_errors(T_est, T_true)
         ref, cur = (np.array([index[getattr(s, a)] for s in kept]) for a in ("ref_timestamp", "timestamp"))
         is_bad = np.isin(ref, list(bad)) | np.isin(cur, list(bad))
@@ -373,6 +375,7 @@ def chain_tables(pairs: dict) -> list[str]:
         cells = []
         for w in CHAIN_WINDOWS:
             est, covs = compose_chains(p["T_est"], p["cov"], w)
+            covs = covs + p["jitter"](p["t_ref"][:len(est)], p["t_cur"][w - 1:])  # the reference's, at the ends
             true, _ = compose_chains(p["T_true"], p["cov"], w)
             xi = relative_pose_tangent_errors(est, true)
             nt, nr = nees(xi[:, 3:], covs[:, 3:, 3:]), nees(xi[:, :3], covs[:, :3, :3])

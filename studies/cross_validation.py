@@ -31,7 +31,13 @@ from covo_gtsam.calibration import (  # noqa: E402
 from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.covariance import compose_chains, compose_covariance  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
-from covo_gtsam.evaluation import ground_truth_lookup, pairs_with_truth, relative_ground_truth  # noqa: E402
+from covo_gtsam.evaluation import (  # noqa: E402
+    ground_truth_lookup,
+    pairs_with_truth,
+    reference_covariances,
+    reference_statistics,
+    relative_ground_truth,
+)
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors, se3_log  # noqa: E402
 from covo_gtsam.nees_breakdown import ACCELERATION_EDGES, by_bins, true_motion  # noqa: E402
 from covo_gtsam.pipeline import calibration_pairs, prior_covariances, run_sequence, stacked_bases  # noqa: E402
@@ -56,7 +62,9 @@ SEGMENTS = ((RPY, (("fr1_rpy, frames 1-119", 1, 119), ("fr1_rpy, frames 120-239"
 def per_point_pairs(data: Path, name: str, **sensor) -> dict:
     """Errors (N, 6), per-point covariances (N, 6, 6), frame-level error bases (name -> (N, 6, 6)),
     end frame index (N,) and true/estimated poses of the consecutive pairs with ground truth,
-    per-point model alone (and the ``sensor`` settings given)."""
+    per-point model alone (and the ``sensor`` settings given). ``fixed`` holds the known terms: the
+    prior terms' and the ground truth's own jitter (``ref``, as ``metrics.json``'s NEES adds it);
+    ``jitter`` is that jitter's function of the stamps (for the chains' ends)."""
     seq = TumSequence(data / "tum" / name)
     cfg = OdometryConfig().replace(sensor={**POINTS_ONLY, **sensor})
     with tempfile.TemporaryDirectory() as tmp:
@@ -67,13 +75,27 @@ def per_point_pairs(data: Path, name: str, **sensor) -> dict:
     T_est, T_true, covs = relative_ground_truth(pairs, lookup)
     index = {t: i for i, t in enumerate(seq.timestamps)}
     priors = {k: getattr(OdometryConfig().sensor, ERROR_TERMS[k]) for k in PRIOR_TERMS}
+    jitter = reference_covariances(seq.gt_samples)
+    t_ref, t_cur = np.array([s.ref_timestamp for s in pairs]), np.array([s.timestamp for s in pairs])
+    ref = jitter(t_ref, t_cur)
     return {"err": relative_pose_tangent_errors(T_est, T_true), "cov": covs, "bases": stacked_bases(pairs),
-            "fixed": prior_covariances(pairs, priors), "fit_ok": np.array([id(s) in fit_ok for s in pairs], bool),
+            "fixed": prior_covariances(pairs, priors) + ref, "ref": ref, "jitter": jitter,
+            "fit_ok": np.array([id(s) in fit_ok for s in pairs], bool), "t_ref": t_ref, "t_cur": t_cur,
             "end": np.array([index[s.timestamp] for s in pairs]), "T_est": T_est, "T_true": T_true}
 
 
+def against_reference(seq: TumSequence, steps: list, lookup: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`covo_gtsam.evaluation.relative_ground_truth` of ``steps``, the covariances with the
+    ground truth's own jitter added, as ``metrics.json``'s NEES adds it."""
+    pairs = pairs_with_truth(steps, lookup)
+    T_est, T_true, covs = relative_ground_truth(pairs, lookup)
+    ref = reference_covariances(seq.gt_samples)([s.ref_timestamp for s in pairs], [s.timestamp for s in pairs])
+    return T_est, T_true, covs + ref
+
+
 def subset(p: dict, mask: np.ndarray) -> dict:
-    return {k: ({n: b[mask] for n, b in v.items()} if isinstance(v, dict) else v[mask]) for k, v in p.items()}
+    return {k: (v if callable(v) else {n: b[mask] for n, b in v.items()} if isinstance(v, dict) else v[mask])
+            for k, v in p.items()}
 
 
 def model_covs(fit, p: dict) -> np.ndarray:
@@ -87,13 +109,15 @@ def anees_cells(err: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def chain_anees(p: dict, covs: np.ndarray, w: int = CHAIN) -> tuple[float, float]:
     """ANEES t / r of windows of ``w`` consecutive pairs (covariances composed as independent,
-    :func:`covo_gtsam.covariance.compose_chains`)."""
+    :func:`covo_gtsam.covariance.compose_chains`; the ground truth's jitter, in ``covs`` per pair,
+    taken out and added at the chains' ends)."""
     breaks = np.flatnonzero(np.diff(p["end"]) != 1) + 1  # runs of pairs ending in consecutive frames
     nt, nr = [], []
     for run in np.split(np.arange(len(p["end"])), breaks):
-        T, C = compose_chains(p["T_est"][run], covs[run], w)
+        T, C = compose_chains(p["T_est"][run], covs[run] - p["ref"][run], w)
         if not len(T):
             continue
+        C = C + p["jitter"](p["t_ref"][run][:len(T)], p["t_cur"][run][w - 1:])
         true, _ = compose_chains(p["T_true"][run], covs[run], w)
         t, r = anees_cells(relative_pose_tangent_errors(T, true), C)
         nt.append(t)
@@ -302,7 +326,7 @@ def stride_table(data: Path) -> list[str]:
              "| every n-th frame | pairs | ANEES t / r | NEES > 9.35 t / r | largest NEES t / r |",
              "|---|---|---|---|---|"]
     for n in (1, 2, 3):
-        T_est, T_true, covs = relative_ground_truth(every_nth(seq, OdometryConfig(), n), lookup)
+        T_est, T_true, covs = against_reference(seq, every_nth(seq, OdometryConfig(), n), lookup)
         nt, nr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
         lines.append(f"| {n} | {len(nt)} | {nt.mean():.2f} / {nr.mean():.2f} | {100 * np.mean(nt > 9.35):.0f} % / "
                      f"{100 * np.mean(nr > 9.35):.0f} % | {nt.max():.1f} / {nr.max():.1f} |")
@@ -317,8 +341,8 @@ def motion_table(data: Path) -> list[str]:
     offset = dict(zip(seq.timestamps, np.asarray(seq.depth_timestamps) - np.asarray(seq.timestamps)))
     cells: dict = {}
     for n in (1, 2, 3):
-        steps = [s for s in every_nth(seq, OdometryConfig(), n) if s.ref_timestamp in lookup and s.timestamp in lookup]
-        T_est, T_true, covs = relative_ground_truth(steps, lookup)
+        steps = pairs_with_truth(every_nth(seq, OdometryConfig(), n), lookup)
+        T_est, T_true, covs = against_reference(seq, steps, lookup)
         nt, nr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
         w = (np.linalg.norm(se3_log(T_est)[:, :3], axis=1)
              / np.array([s.timestamp - s.ref_timestamp for s in steps]))
@@ -345,7 +369,7 @@ def acceleration_table(data: Path) -> list[str]:
     seq = TumSequence(data / "tum" / RPY)
     lookup = ground_truth_lookup(seq)
     steps = pairs_with_truth(every_nth(seq, OdometryConfig(), 1), lookup)
-    T_est, T_true, covs = relative_ground_truth(steps, lookup)
+    T_est, T_true, covs = against_reference(seq, steps, lookup)
     nt, nr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
     _, accel = true_motion(T_true, [s.ref_timestamp for s in steps], [s.timestamp for s in steps])
     index = {t: i for i, t in enumerate(seq.timestamps)}
@@ -434,23 +458,11 @@ def closure_table(data: Path) -> list[str]:
             d.append(gtsam.Pose3.Logmap(skip.relative.between(a.relative.compose(b.relative))))
             S.append(chain + skip.covariance)
         nt, nr = anees_cells(np.array(d), np.array(S))
-        T_est, T_true, covs = relative_ground_truth(list(consecutive.values()), lookup)
+        T_est, T_true, covs = against_reference(seq, list(consecutive.values()), lookup)
         gt, gr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
         lines.append(f"| {label} | {len(d)} | {nt.mean():.2f} / {nr.mean():.2f} ({np.median(nt):.2f} / "
                      f"{np.median(nr):.2f}) | {gt.mean():.2f} / {gr.mean():.2f} |")
     return lines + [""]
-
-
-def reference_covariances(seq: TumSequence, end: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Per-axis s.d. (rad) of the ground truth's own rotation noise per sample and what it adds
-    (N, 6, 6) to the error of each pair of frames ``end - k`` and ``end``
-    (:func:`covo_gtsam.reference_noise.pair_jitter_covariances`)."""
-    from covo_gtsam.reference_noise import pair_jitter_covariances, reference_jitter
-
-    stamps, poses = seq.gt_samples
-    sd = reference_jitter(stamps, poses)["rotation_rad"]
-    ts = np.asarray(seq.timestamps)
-    return sd, pair_jitter_covariances(stamps, sd, ts[end - k], ts[end])
 
 
 def reference_table(data: Path) -> list[str]:
@@ -469,7 +481,7 @@ def reference_table(data: Path) -> list[str]:
     for name in (RPY, DESK):
         seq = TumSequence(data / "tum" / name)
         p = per_point_pairs(data, name)
-        sd, ref = reference_covariances(seq, p["end"])
+        sd, ref = np.deg2rad(reference_statistics(seq.gt_samples)["rotation_deg"]), p["ref"]
         parts[name] = (p, ref)
         share = np.diagonal(ref, axis1=1, axis2=2)[:, :3].mean(axis=0) / np.mean(p["err"][:, :3] ** 2, axis=0)
         lines.append(f"| {name} | {' / '.join(f'{v:.3f}' for v in np.rad2deg(sd))} | "
@@ -480,7 +492,7 @@ def reference_table(data: Path) -> list[str]:
     halves = {"A": rpy["end"] <= 119, "B": rpy["end"] >= 120}
     for name, m in halves.items():
         for label, extra in (("in the frame term", 0.0 * ref), ("a known term", ref)):
-            fit, held = fit_half({**rpy, "fixed": rpy["fixed"] + extra}, m)
+            fit, held = fit_half({**rpy, "fixed": rpy["fixed"] - ref + extra}, m)
             lines.append(f"| {name} | {label} | {fit.frame_sigma_rot_deg:.3f} | {1e3 * fit.sigmas['latency']:.2f} | "
                          f"{fit.log_likelihood:.2f} | {'B' if name == 'A' else 'A'} | {held} |")
     return lines + [""]

@@ -13,7 +13,7 @@ from conftest import SAMPLE_DIR
 BASE_KEYS = ["sequence", "frames", "tracked_frames", "lost_frames", "lost", "restarts", "unassociated", "elapsed_s",
              "frames_per_second", "mean_pairs", "flagged_pairs", "flagged"]
 GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS, "chains",
-           "nees_breakdown", "reference_jitter"]
+           "nees_breakdown", "reference_jitter", "nees_with_reference_jitter"]
 
 
 @pytest.fixture(scope="module")
@@ -61,19 +61,51 @@ def test_statistics_summarise_the_arrays_kept(sample_run):
     assert set(ev.ground_truth) >= {s.timestamp for s in sample_run.steps if s.tracked}
 
 
-def test_the_reference_jitter_is_that_of_the_runs_span(sample_run):
+def test_the_reference_jitter_is_that_of_all_its_samples(sample_run):
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.reference_noise import reference_jitter
 
     stamps, poses = TumSequence(SAMPLE_DIR).gt_samples
-    ts = [s.timestamp for s in sample_run.steps]
-    inside = (stamps >= min(ts) - 0.1) & (stamps <= max(ts) + 0.1)
-    assert 0 < inside.sum() < len(stamps)  # the run covers 35 of the sample's 40 frames
-    direct = reference_jitter(stamps[inside], poses[inside])
+    direct = reference_jitter(stamps, poses)
     ref = sample_run.evaluation.reference
     assert ref["samples"] == direct["samples"]
     np.testing.assert_allclose(ref["rotation_deg"], np.rad2deg(direct["rotation_rad"]), rtol=1e-12)
     np.testing.assert_allclose(ref["translation_mm"], 1e3 * direct["translation_m"], rtol=1e-12)
+
+
+def test_the_nees_adds_the_references_jitter_to_each_covariance(sample_run):
+    """Each pair's NEES is its error against the ground truth under the pair's covariance plus the
+    reference's own rotation variance at its two frames (interpolated between samples), computed
+    here directly from relative.txt's covariances; without the reference's samples, the plain NEES."""
+    import gtsam
+
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.evaluation import pairs_with_truth
+
+    ev = sample_run.evaluation
+    assert ev.nees_with_reference_jitter and ev.to_dict()["nees_with_reference_jitter"] is True
+    stamps, _ = TumSequence(SAMPLE_DIR).gt_samples
+    var = np.deg2rad(ev.reference["rotation_deg"]) ** 2
+
+    def kept(t):  # share of one sample's variance an interpolated pose keeps
+        i = np.searchsorted(stamps, t)
+        a = (t - stamps[i - 1]) / (stamps[i] - stamps[i - 1])
+        return (1 - a) ** 2 + a**2
+
+    pairs = pairs_with_truth(sample_run.steps, ev.ground_truth)
+    for k in (0, 7, len(pairs) - 1):
+        s = pairs[k]
+        C = s.covariance[:3, :3] + np.diag(var) * (kept(s.ref_timestamp) + kept(s.timestamp))
+        true = np.linalg.inv(ev.ground_truth[s.ref_timestamp]) @ ev.ground_truth[s.timestamp]
+        xi = gtsam.Pose3.Logmap(s.relative.between(gtsam.Pose3(true)))[:3]
+        assert ev.nees_rotation[k] == pytest.approx(xi @ np.linalg.solve(C, xi), rel=1e-9)
+        assert ev.nees_rotation[k] < xi @ np.linalg.solve(s.covariance[:3, :3], xi)
+    seq = TumSequence(SAMPLE_DIR)
+    seq.gt_samples = None
+    plain = evaluate_run(sample_run.steps, seq, 1.0)
+    assert not plain.nees_with_reference_jitter and np.all(plain.nees_rotation > ev.nees_rotation)
+    np.testing.assert_allclose(plain.nees_translation, ev.nees_translation, rtol=1e-12)  # rotation block only
+    assert np.all(plain.chain_nees_rotation > ev.chain_nees_rotation)
 
 
 def test_without_the_references_samples_the_jitter_says_why(sample_run):
