@@ -97,6 +97,41 @@ def test_malformed_scheduler_address_is_refused_before_connecting(sample_dir, tm
     assert not tried  # refused before any connection attempt
 
 
+def test_transport_not_set_up_is_one_line_and_its_client_closed(tmp_path, capsys, monkeypatch):
+    """tls:// without Dask's TLS configuration fails inside the client's constructor, before any
+    network traffic: one line, and the half-built client is closed at once (left open, it prints a
+    traceback when the interpreter exits)."""
+    distributed = pytest.importorskip("dask.distributed")
+    made = []
+
+    class Recorded(distributed.Client):
+        def __init__(self, *args, **kwargs):
+            made.append(self)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(distributed, "Client", Recorded)
+    assert main(["simulate", "--runs", "2", "--out", str(tmp_path / "s"), "--scheduler", "tls://127.0.0.1:1",
+                 "--connect-timeout", "1", "--quiet", "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "tls://127.0.0.1:1" in err and "TLS" in err and "Traceback" not in err
+    assert made and all(client.status == "closed" for client in made)
+
+
+def test_any_failure_to_connect_is_one_line_naming_the_address_and_reason(sample_dir, tmp_path, capsys,
+                                                                         monkeypatch):
+    distributed = pytest.importorskip("dask.distributed")
+
+    class Failing(distributed.Client):
+        def __init__(self, *args, **kwargs):
+            raise RuntimeError("comm layer unavailable")
+
+    monkeypatch.setattr(distributed, "Client", Failing)
+    assert main(["evaluate", str(sample_dir), "--out", str(tmp_path / "e"), "--scheduler", "ucx://127.0.0.1:1",
+                 "--connect-timeout", "1", "--quiet", "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "ucx://127.0.0.1:1" in err and "RuntimeError: comm layer unavailable" in err
+
+
 def test_evaluate_ends_with_exit_code_3_when_a_sequence_lost_every_frame(small_sample, tmp_path, capsys):
     import shutil
 
