@@ -147,3 +147,24 @@ def test_evaluate_ends_with_exit_code_3_when_a_sequence_lost_every_frame(small_s
     captured = capsys.readouterr()
     assert "no frame could be tracked in rgbd_dataset_freiburg1_blind" in captured.err
     assert (tmp_path / "e" / "summary.csv").is_file()  # the summary is written all the same
+
+
+def test_evaluate_ends_with_exit_code_3_when_a_sequence_gave_no_relative_pose(small_sample, tmp_path, capsys):
+    """Its first frame tracked, every later one lost: no relative pose, as covo run reports with exit code 3."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    good, bad = small_sample(3), tmp_path / "rgbd_dataset_freiburg1_first_only"
+    shutil.copytree(good, bad)
+    for png in sorted((bad / "depth").glob("*.png"))[1:]:  # only the first frame has depth
+        cv2.imwrite(str(png), np.zeros((480, 640), np.uint16))
+    out = tmp_path / "e"
+    assert main(["evaluate", str(good), str(bad), "--out", str(out), "--quiet", "--no-plots", "--workers", "1"]) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and good.name not in err
+    assert "no relative pose could be estimated between any two frames of rgbd_dataset_freiburg1_first_only" in err
+    rows = _rows(out)  # the summary is written all the same
+    assert (rows[bad.name]["frames"], rows[bad.name]["lost"]) == ("3", "2") and rows[good.name]["lost"] == "0"
+    assert main(["run", str(bad), "--out", str(tmp_path / "r"), "--quiet", "--no-plots"]) == 3
