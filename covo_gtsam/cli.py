@@ -203,7 +203,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(line)
     print(f"results in {args.out} (summary.csv, summary.md)")
     nothing = [r["sequence"] for r in rows if r["frames"] and r["lost"] == r["frames"]]
-    no_pose = [r["sequence"] for r in rows if _no_relative_pose(r["frames"], r["frames"] - r["lost"], r["relative_poses"])]
+    no_pose = [r["sequence"] for r in rows
+               if _no_relative_pose(r["frames"], r["frames"] - r["lost"], r["relative_poses"])]
     problems = []
     if nothing:
         problems.append(f"no frame could be tracked in {', '.join(nothing)}: all frames are lost")
