@@ -28,6 +28,10 @@ that are not numbers raise :class:`~covo_gtsam.errors.ConfigError` naming the fi
 
 YAML numbers such as ``1e-05`` or ``5.173E2`` (floats to ROS's reader, strings to YAML 1.1's) are
 read as numbers; other strings, NaN and infinities are not.
+
+A ROS bag's ``sensor_msgs/CameraInfo`` goes through the same checks
+(:func:`check_camera_matrix`, :func:`plumb_bob`, :func:`checked_camera`; see
+:mod:`covo_gtsam.datasets.rosbag`).
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ from .camera import Camera
 from .errors import ConfigError
 from .io import read_settings_file
 
-__all__ = ["load_camera_file", "resolve_camera"]
+__all__ = ["check_camera_matrix", "checked_camera", "load_camera_file", "plumb_bob", "resolve_camera"]
 
 _REQUIRED = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
 _DIST = ("k1", "k2", "p1", "p2", "k3")
@@ -96,16 +100,42 @@ def _matrix_data(p: Path, data: dict, key: str, size: int | tuple[int, ...],
     return [_number(p, f"{key}.data", v, text=True) for v in values]
 
 
-def _check_camera_matrix(p: Path, K: list[float]) -> None:
-    """``K`` (row-major) must be ``[fx 0 cx 0 fy cy 0 0 1]``: the camera model has no skew."""
+def check_camera_matrix(where: str | os.PathLike, K, key: str = "camera_matrix", item: str = "data") -> None:
+    """``K`` (9 numbers, row-major) must be ``[fx 0 cx 0 fy cy 0 0 1]``: the camera model has no
+    skew. Errors name ``where``, then the matrix ``key`` and its elements as ``item[i]``.
+
+    Raises:
+        ConfigError: another length, skew, a third row other than ``0 0 1`` (e.g. a transposed matrix),
+            or a non-zero ``item[3]``.
+    """
+    K = [float(k) for k in K]
+    if len(K) != 9:
+        raise ConfigError(f"{where}: {key} needs 9 numbers (3x3), got {len(K)}")
     if K[6:] != [0.0, 0.0, 1.0]:
         hint = " (a transposed, column-major matrix?)" if K[2] == K[5] == 0.0 and K[8] == 1.0 else ""
-        raise ConfigError(f"{p}: camera_matrix third row must be [0, 0, 1], got [{K[6]:g}, {K[7]:g}, {K[8]:g}]"
+        raise ConfigError(f"{where}: {key} third row must be [0, 0, 1], got [{K[6]:g}, {K[7]:g}, {K[8]:g}]"
                           f"{hint}")
     if K[1] != 0.0:
-        raise ConfigError(f"{p}: camera_matrix skew (data[1]) must be 0, got {K[1]:g}: the camera model has none")
+        raise ConfigError(f"{where}: {key} skew ({item}[1]) must be 0, got {K[1]:g}: the camera model has none")
     if K[3] != 0.0:
-        raise ConfigError(f"{p}: camera_matrix data[3] (row 2, column 1) must be 0, got {K[3]:g}")
+        lower_left = f"{item}[3]" if item == key else f"{key} {item}[3]"
+        raise ConfigError(f"{where}: {lower_left} (row 2, column 1) must be 0, got {K[3]:g}")
+
+
+def plumb_bob(where: str | os.PathLike, model: str, D) -> tuple[float, float, float, float, float]:
+    """The distortion ``(k1, k2, p1, p2, k3)`` of ROS's ``distortion_model`` and coefficients ``D``
+    (any length; missing ones are 0).
+
+    Raises:
+        ConfigError: a model other than ``plumb_bob`` or ``rational_polynomial`` with non-zero
+            coefficients, or non-zero ``k4..k6``.
+    """
+    D = [float(d) for d in D]
+    if model not in ("plumb_bob", "rational_polynomial") and any(D):
+        raise ConfigError(f"{where}: distortion_model {model!r} is not supported (plumb_bob: k1 k2 p1 p2 k3)")
+    if any(D[5:]):
+        raise ConfigError(f"{where}: distortion k4..k6 are not supported (plumb_bob: k1 k2 p1 p2 k3)")
+    return tuple(D[:5] + [0.0] * (5 - min(5, len(D))))
 
 
 def _from_yaml(p: Path, data: dict) -> tuple[dict, float | None]:
@@ -116,17 +146,12 @@ def _from_yaml(p: Path, data: dict) -> tuple[dict, float | None]:
     if unknown:
         raise ConfigError(f"{p}: unknown keys {', '.join(unknown)}")
     K = _matrix_data(p, data, "camera_matrix", 9, shape=(3, 3))
-    _check_camera_matrix(p, K)
-    dist = [0.0] * 5
+    check_camera_matrix(p, K)
+    dist = (0.0,) * 5
     if "distortion_coefficients" in data:
-        model = data.get("distortion_model", "plumb_bob")
         D = _matrix_data(p, data, "distortion_coefficients", (0, 4, 5, 8))
-        if model not in ("plumb_bob", "rational_polynomial") and any(D):
-            raise ConfigError(f"{p}: distortion_model {model!r} is not supported (plumb_bob: k1 k2 p1 p2 k3)")
-        if any(D[5:]):
-            raise ConfigError(f"{p}: distortion k4..k6 are not supported (plumb_bob: k1 k2 p1 p2 k3)")
-        dist[: min(5, len(D))] = D[:5]
-    values = {"fx": K[0], "fy": K[4], "cx": K[2], "cy": K[5], "dist": tuple(dist),
+        dist = plumb_bob(p, data.get("distortion_model", "plumb_bob"), D)
+    values = {"fx": K[0], "fy": K[4], "cx": K[2], "cy": K[5], "dist": dist,
               "width": data["image_width"], "height": data["image_height"],
               "name": str(data.get("camera_name") or p.stem)}
     scale = data.get("depth_scale")
@@ -148,7 +173,7 @@ def _from_table(p: Path, data: dict) -> tuple[dict, float]:
     return values, _number(p, "depth_scale", data["depth_scale"])
 
 
-def _check_distortion(p: Path, cam: Camera) -> None:
+def _check_distortion(p: str | os.PathLike, cam: Camera) -> None:
     """Undistorting a grid of pixels over the image (edges and corners included) and distorting them
     again must give them back within ``_ROUND_TRIP_PX``: otherwise the run's undistorted pixels are wrong."""
     if not cam.has_distortion:
@@ -179,21 +204,33 @@ def load_camera_file(path: str | os.PathLike) -> tuple[Camera, float | None]:
     data = _read(p)
     is_yaml = p.suffix.lower() in (".yaml", ".yml")
     values, scale = _from_yaml(p, data) if is_yaml else _from_table(p, data)
+    if scale is not None and not scale > 0:
+        raise ConfigError(f"{p}: depth_scale must be positive, got {scale:g}")
+    return checked_camera(p, values, size_prefix="image_" if is_yaml else ""), scale
+
+
+def checked_camera(where: str | os.PathLike, values: dict, size_prefix: str = "") -> Camera:
+    """The :class:`Camera` of ``values`` (``fx fy cx cy`` px, ``dist`` k1 k2 p1 p2 k3, ``width height``
+    px, ``name``) after the checks every camera source goes through: the image size positive
+    integers (named ``size_prefix + "width"``, ...), the principal point inside the image, the focal
+    lengths in range, the distortion invertible over the image.
+
+    Raises:
+        ConfigError: a check fails; the message starts with ``where``.
+    """
     for k in ("width", "height"):
         v = values[k]
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-            raise ConfigError(f"{p}: {'image_' if is_yaml else ''}{k} must be a positive integer, got {v!r}")
-    if scale is not None and not scale > 0:
-        raise ConfigError(f"{p}: depth_scale must be positive, got {scale:g}")
+            raise ConfigError(f"{where}: {size_prefix}{k} must be a positive integer, got {v!r}")
     for k, n in (("cx", values["width"]), ("cy", values["height"])):
         if not 0 <= values[k] <= n:
-            raise ConfigError(f"{p}: principal point {k}={values[k]:g} px is outside the image (0 to {n} px)")
+            raise ConfigError(f"{where}: principal point {k}={values[k]:g} px is outside the image (0 to {n} px)")
     try:
         cam = Camera(**values)
     except ConfigError as exc:
-        raise ConfigError(f"{p}: {exc}") from exc
-    _check_distortion(p, cam)
-    return cam, scale
+        raise ConfigError(f"{where}: {exc}") from exc
+    _check_distortion(where, cam)
+    return cam
 
 
 def resolve_camera(value: str | None) -> tuple[Camera | None, float | None]:

@@ -1,8 +1,10 @@
 """Command line: ``covo run``, ``covo evaluate``, ``covo simulate``, ``covo analyze-noise``, ``covo calibrate``.
 
 Every failure the package knows about ends with exit code 2 and one line on stderr naming the
-file and the problem; no traceback. ``covo run`` that tracks no frame at all ends with exit code 3
-(its results are written); Ctrl-C ends any command with 130.
+file and the problem; no traceback. ``covo run`` that tracks no frame at all, or of more than one
+frame estimates no relative pose, ends with exit code 3 (its results are written), and so does
+``covo evaluate`` when that happens to one of its sequences (its summary is written); Ctrl-C ends
+any command with 130.
 """
 
 from __future__ import annotations
@@ -27,8 +29,15 @@ def load_config_file(path: str):
     return load_config(path)
 
 
-#: Exit code of ``covo run`` when no frame could be tracked (the results folder is still written).
+#: Exit code of ``covo run`` when no frame could be tracked, or no relative pose estimated (the
+#: results folder is still written); of ``covo evaluate`` when that happened to a sequence.
 EXIT_NOTHING_TRACKED = 3
+
+
+def _no_relative_pose(frames: int, tracked_frames: int, relative_poses: int) -> bool:
+    """A run that tracked frames but estimated no relative pose between any two of them (a run of
+    one frame has no pair to estimate)."""
+    return frames > 1 and tracked_frames > 0 and relative_poses == 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -76,9 +85,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"covo: error: no frame could be tracked: all {m['frames']} frames are lost (first reason: {first}); "
               f"see metrics.json", file=sys.stderr)
         return EXIT_NOTHING_TRACKED
-    from .steps import StepStatus
-
-    if m["frames"] > 1 and not any(s.status == StepStatus.RELATIVE_POSE for s in result.steps):
+    if _no_relative_pose(m["frames"], m["tracked_frames"], sum(s.has_relative_pose for s in result.steps)):
         first = m["lost"][0]["reason"] if m["lost"] else "none was lost"
         print(f"covo: error: no relative pose could be estimated between any two of the {m['frames']} frames "
               f"(first lost frame: {first}); relative.txt is empty; see metrics.json", file=sys.stderr)
@@ -196,9 +203,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(line)
     print(f"results in {args.out} (summary.csv, summary.md)")
     nothing = [r["sequence"] for r in rows if r["frames"] and r["lost"] == r["frames"]]
+    no_pose = [r["sequence"] for r in rows
+               if _no_relative_pose(r["frames"], r["frames"] - r["lost"], r["relative_poses"])]
+    problems = []
     if nothing:
-        print(f"covo: error: no frame could be tracked in {', '.join(nothing)}: all frames are lost; see their "
-              f"metrics.json", file=sys.stderr)
+        problems.append(f"no frame could be tracked in {', '.join(nothing)}: all frames are lost")
+    if no_pose:
+        problems.append(f"no relative pose could be estimated between any two frames of {', '.join(no_pose)} "
+                        "(relative.txt is empty)")
+    if problems:
+        print(f"covo: error: {'; '.join(problems)}; see their metrics.json", file=sys.stderr)
         return EXIT_NOTHING_TRACKED
     return 0
 
@@ -312,8 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one command; the exit code: 0 done, 2 unusable input (one line on stderr), 3 ``covo run``
-    tracked no frame or estimated no relative pose (``covo evaluate``: a sequence tracked no frame),
-    130 interrupted (Ctrl-C)."""
+    tracked no frame or estimated no relative pose (``covo evaluate``: a sequence did), 130
+    interrupted (Ctrl-C)."""
     _one_blas_thread(sys.argv[1:] if argv is None else argv)
     try:
         parser = build_parser()  # imports GTSAM: Ctrl-C may arrive here

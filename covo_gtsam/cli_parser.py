@@ -12,6 +12,12 @@ conventions:
   T_ref,cur maps points of the current camera frame into the reference frame.
   Covariances are 6x6 in GTSAM's Pose3 tangent [rx ry rz tx ty tz] (rad, m),
   right perturbation T_true = T_est * Exp(xi).  Quaternions are qx qy qz qw.
+
+exit codes:
+  0 done; 2 unusable input (one line on stderr); 130 interrupted (Ctrl-C);
+  3 covo run tracked no frame, or of two or more frames estimated no relative
+  pose (its results are written); covo evaluate, when that happened to one of
+  its sequences (the summary is written).
 """
 
 

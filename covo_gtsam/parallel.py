@@ -25,10 +25,10 @@ def default_workers(tasks: int) -> int:
     return max(1, min(tasks, os.cpu_count() or 1))
 
 
-def _check_address(address: str) -> None:
-    """A scheduler address Dask can connect to: ``[scheme://]host:port``, the scheme one of Dask's
-    registered network transports (tcp if none; not ``inproc``, which is within one process),
-    checked before connecting.
+def _check_address(address: str) -> str:
+    """The transport of a scheduler address Dask can connect to: ``[scheme://]host:port``, the scheme
+    one of Dask's registered network transports (tcp if none; not ``inproc``, which is within one
+    process), checked before connecting.
 
     Raises:
         ConfigError: it is not such an address.
@@ -43,6 +43,7 @@ def _check_address(address: str) -> None:
         if scheme not in schemes:
             raise ValueError(f"the transport must be one of {', '.join(schemes)}, got {scheme!r}")
         parse_host_port(location)
+        return scheme
     except (ValueError, TypeError) as exc:
         raise ConfigError(f"--scheduler {address}: not a scheduler address such as tcp://HOST:PORT "
                           f"({' '.join(str(exc).split())})") from None
@@ -54,12 +55,32 @@ def _dask_client(address: str, timeout: float):
     except ImportError:
         raise ConfigError('--scheduler needs Dask: pip install "covo-gtsam[dask]" '
                           '(or pip install "dask[distributed]")') from None
-    _check_address(address)
+    scheme = _check_address(address)
+    client = None
     try:
-        return Client(address, timeout=timeout, set_as_default=False)
-    except (OSError, TimeoutError, ValueError, TypeError) as exc:
+        # created, then connected: a client whose connection failed is closed here, at once (left
+        # to the garbage collector, it waits for its event loop and prints a traceback at exit)
+        client = Client.__new__(Client)
+        client.__init__(address, timeout=timeout, set_as_default=False)
+        return client
+    except Exception as exc:  # any transport's failure: Dask raises no common type
+        _discard(client, timeout)
         msg = " ".join(str(exc).split()) or type(exc).__name__
-        raise ConfigError(f"--scheduler {address}: cannot reach the Dask scheduler within {timeout:g} s ({msg})") from exc
+        if isinstance(exc, (OSError, TimeoutError)):
+            raise ConfigError(f"--scheduler {address}: cannot reach the Dask scheduler within {timeout:g} s "
+                              f"({msg})") from exc
+        raise ConfigError(f"--scheduler {address}: cannot connect to the Dask scheduler ({type(exc).__name__}: "
+                          f"{msg}; is Dask's {scheme} transport set up here?)") from exc
+
+
+def _discard(client, timeout: float) -> None:
+    """Close a client whose connection failed (its event loop is still running), whatever it says."""
+    if client is None:
+        return
+    try:
+        client.close(timeout=timeout)
+    except Exception:  # a half-built client may lack what close() expects
+        pass
 
 
 def map_tasks(func: Callable, args: Sequence[tuple], workers: int | None = None, scheduler: str | None = None,
@@ -68,7 +89,8 @@ def map_tasks(func: Callable, args: Sequence[tuple], workers: int | None = None,
     scheduler at ``scheduler``. ``progress(k)`` is called as tasks finish (k = tasks done).
 
     Raises:
-        ConfigError: Dask is missing or the scheduler cannot be reached.
+        ConfigError: Dask is missing or the scheduler cannot be reached (any failure to connect,
+            e.g. a transport that is not set up here, such as ``tls`` without certificates).
         CovoError: a task raised one (the first, in argument order).
     """
     args = [tuple(a) for a in args]

@@ -45,7 +45,8 @@ def _get(m: dict, *keys):
 
 
 def summary_row(name: str, metrics: dict) -> dict:
-    """The summary row of one run's ``metrics.json`` dict (None where a metric is missing)."""
+    """The summary row of one run's ``metrics.json`` dict (None where a metric is missing): the
+    :data:`COLUMNS`, then ``relative_poses`` as :func:`run_one` gives it (not a column)."""
     return {
         "sequence": name,
         "frames": metrics.get("frames"),
@@ -60,6 +61,7 @@ def summary_row(name: str, metrics: dict) -> dict:
         "chain_anees_t": _get(metrics, "chains", "anees_translation"),
         "chain_anees_r": _get(metrics, "chains", "anees_rotation"),
         "frames_per_s": metrics.get("frames_per_second"),
+        "relative_poses": metrics.get("relative_poses"),
     }
 
 
@@ -77,8 +79,9 @@ def _open_sequence(path: str, camera: str | None, topics: dict):
 def run_one(path: str, out_dir: str, camera: str | None = None, config: dict | None = None,
             max_frames: int | None = None, plots: bool = False, topics: dict | None = None,
             bag_out: str | None = None) -> dict:
-    """``covo run`` of one sequence into ``out_dir``; returns its ``metrics.json`` dict. Plain
-    arguments only (it runs on other processes and machines)."""
+    """``covo run`` of one sequence into ``out_dir``; returns its ``metrics.json`` dict with
+    ``relative_poses`` added (the frames that got a relative pose: the lines of ``relative.txt``).
+    Plain arguments only (it runs on other processes and machines)."""
     from .config import OdometryConfig
     from .pipeline import run_sequence
 
@@ -88,7 +91,7 @@ def run_one(path: str, out_dir: str, camera: str | None = None, config: dict | N
         cfg = cfg.replace(sensor={"depth_scale": scale})
     result = run_sequence(seq, out_dir, config=cfg, max_frames=max_frames, plots=plots, progress=False,
                           bag_out=bag_out)
-    return result.metrics
+    return {**result.metrics, "relative_poses": sum(s.has_relative_pose for s in result.steps)}
 
 
 def _names(paths: list[str]) -> list[str]:
@@ -123,7 +126,7 @@ def _fmt(v, digits: int = 4) -> str:
 def write_summary(out: Path, rows: list[dict]) -> None:
     """``summary.csv`` (full precision) and ``summary.md`` (rounded) of the rows."""
     with open(out / "summary.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=COLUMNS)
+        w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
         w.writeheader()
         for r in rows:
             w.writerow({k: "" if r[k] is None else (repr(r[k]) if isinstance(r[k], float) else r[k]) for k in COLUMNS})
@@ -168,7 +171,8 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
                        config: dict | None = None, max_frames: int | None = None, workers: int | None = None,
                        scheduler: str | None = None, timeout: float | None = None, plots: bool = True,
                        topics: dict | None = None, progress: bool = False) -> list[dict]:
-    """Run every sequence (see the module docstring) and write the summary; returns the rows.
+    """Run every sequence (see the module docstring) and write the summary; returns the rows
+    (:func:`summary_row`).
 
     Raises:
         DatasetError: a path is neither a TUM folder nor a bag; the first failing run's error.

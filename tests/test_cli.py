@@ -249,16 +249,19 @@ def test_console_script_entry_point(tmp_path):
 
 def _long_sequence(dst: Path, copies: int) -> Path:
     """The sample sequence listed ``copies`` times over, each copy one frame period after the last
-    (images linked, not copied; no ground truth): a run long enough to be interrupted."""
+    (images linked, not copied, through one folder link per copy, as an image is listed once; no
+    ground truth): a run long enough to be interrupted."""
     dst.mkdir()
-    (dst / "rgb").symlink_to(SAMPLE_DIR / "rgb")
-    (dst / "depth").symlink_to(SAMPLE_DIR / "depth")
+    for k in range(copies):
+        (dst / f"rgb{k}").symlink_to(SAMPLE_DIR / "rgb")
+        (dst / f"depth{k}").symlink_to(SAMPLE_DIR / "depth")
     for name in ("rgb.txt", "depth.txt"):
         text = (SAMPLE_DIR / name).read_text()
         rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
         stamps = [float(r[0]) for r in rows]
         span = stamps[-1] - stamps[0] + 1 / 30
-        lines = [f"{t + k * span:.6f} {r[1]}" for k in range(copies) for t, r in zip(stamps, rows)]
+        lines = [f"{t + k * span:.6f} {r[1].replace('/', f'{k}/', 1)}" for k in range(copies)
+                 for t, r in zip(stamps, rows)]
         (dst / name).write_text("\n".join(lines) + "\n")
     return dst
 

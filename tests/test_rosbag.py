@@ -20,6 +20,7 @@ from covo_gtsam.cli import main  # noqa: E402
 from covo_gtsam.datasets.images import load_depth  # noqa: E402
 from covo_gtsam.datasets.rosbag import RosbagSequence  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
+from covo_gtsam.errors import DatasetError  # noqa: E402
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory  # noqa: E402
 
 N = 20
@@ -53,9 +54,10 @@ def _image(ts, ros1, t, arr, encoding):
 
 def write_bag(path, seq: TumSequence, ros1: bool, colour: str, depth: str, n: int = N, tf: bool = True,
               info: bool = True, topics=("/camera/rgb/image_color", "/camera/depth/image"), mcap: bool = False,
-              chain: bool = False):
+              chain: bool = False, info_fields: dict | None = None):
     """A bag of the first ``n`` frames of ``seq``: colour rgb8/bgr8, depth 32FC1 (metres, NaN = none)
-    or 16UC1 (millimetres, rounded), fr1 camera info, /tf world -> camera from groundtruth.txt
+    or 16UC1 (millimetres, rounded), fr1 camera info (``info_fields`` replaces some of its fields,
+    ROS 1 names: ``K``, ``D``, ``width``, ...), /tf world -> camera from groundtruth.txt
     (with ``chain``, like the TUM bags: world -> kinect moving, kinect -> openni_rgb_frame ->
     camera fixed, all on /tf at the ground-truth rate)."""
     ts = _typestore(ros1)
@@ -99,6 +101,11 @@ def write_bag(path, seq: TumSequence, ros1: bool, colour: str, depth: str, n: in
                                                                    do_rectify=False))
         mats = dict(D=np.array(FR1_D), K=np.array(FR1_K, float), R=np.eye(3).reshape(-1),
                     P=np.array([517.3, 0, 318.6, 0, 0, 516.5, 255.3, 0, 0, 0, 1, 0], float))
+        for k, v in (info_fields or {}).items():
+            if k in mats:
+                mats[k] = np.array(v, float)
+            else:
+                kw[k] = v
         kw.update(mats if ros1 else {k.lower(): v for k, v in mats.items()})
         msgs.append((float(seq.timestamps[0]) - 0.001, c_info, ser(CI(**kw), info_t)))
     if tf:
@@ -323,6 +330,30 @@ def test_bag_bad_input_is_one_line_exit_2(fr1_desk_dir, tmp_path, capsys):
     # a bag is accepted by run only
     assert main(["analyze-noise", str(no_topics), "--out", str(tmp_path / "o4"), "--quiet"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+@pytest.mark.parametrize("ros1, fields, needle", [
+    (True, {"K": [517.3, 0, 700.0, 0, 516.5, 255.3, 0, 0, 1]},
+     "principal point cx=700 px is outside the image (0 to 640 px)"),
+    (False, {"K": [517.3, 0.5, 318.6, 0, 516.5, 255.3, 0, 0, 1]}, "K skew (K[1]) must be 0, got 0.5"),
+    (True, {"K": [517.3, 0, 0, 0, 516.5, 0, 318.6, 255.3, 1]},
+     "K third row must be [0, 0, 1], got [318.6, 255.3, 1] (a transposed, column-major matrix?)"),
+    (False, {"K": [0.5, 0, 318.6, 0, 516.5, 255.3, 0, 0, 1]}, "camera focal lengths must be 1 to 1e+06 px"),
+    (True, {"D": [1e6, 0, 0, 0, -1e9]}, "cannot be undistorted over the 640x480 image"),
+    (False, {"height": 0}, "height must be a positive integer, got 0"),
+], ids=["principal-point", "skew", "transposed", "focal-length", "distortion", "size"])
+def test_bag_camera_info_gets_the_checks_of_a_camera_file(sample_dir, tmp_path, capsys, ros1, fields, needle):
+    import re
+
+    bag = write_bag(tmp_path / ("bad.bag" if ros1 else "bad"), TumSequence(sample_dir), ros1=ros1, colour="rgb8",
+                    depth="32FC1", n=3, tf=False, info_fields=fields)
+    with pytest.raises(DatasetError, match=re.escape(needle)):
+        RosbagSequence(bag)
+    assert main(["run", str(bag), "--out", str(tmp_path / "o"), "--quiet", "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{bag}: /camera/rgb/camera_info: " in err and needle in err
+    # a given camera replaces the camera info
+    assert RosbagSequence(bag, camera="fr1").camera.name == "fr1"
 
 
 @pytest.mark.realdata

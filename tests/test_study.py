@@ -97,6 +97,41 @@ def test_malformed_scheduler_address_is_refused_before_connecting(sample_dir, tm
     assert not tried  # refused before any connection attempt
 
 
+def test_transport_not_set_up_is_one_line_and_its_client_closed(tmp_path, capsys, monkeypatch):
+    """tls:// without Dask's TLS configuration fails inside the client's constructor, before any
+    network traffic: one line, and the half-built client is closed at once (left open, it prints a
+    traceback when the interpreter exits)."""
+    distributed = pytest.importorskip("dask.distributed")
+    made = []
+
+    class Recorded(distributed.Client):
+        def __init__(self, *args, **kwargs):
+            made.append(self)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(distributed, "Client", Recorded)
+    assert main(["simulate", "--runs", "2", "--out", str(tmp_path / "s"), "--scheduler", "tls://127.0.0.1:1",
+                 "--connect-timeout", "1", "--quiet", "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "tls://127.0.0.1:1" in err and "TLS" in err and "Traceback" not in err
+    assert made and all(client.status == "closed" for client in made)
+
+
+def test_any_failure_to_connect_is_one_line_naming_the_address_and_reason(sample_dir, tmp_path, capsys,
+                                                                         monkeypatch):
+    distributed = pytest.importorskip("dask.distributed")
+
+    class Failing(distributed.Client):
+        def __init__(self, *args, **kwargs):
+            raise RuntimeError("comm layer unavailable")
+
+    monkeypatch.setattr(distributed, "Client", Failing)
+    assert main(["evaluate", str(sample_dir), "--out", str(tmp_path / "e"), "--scheduler", "ucx://127.0.0.1:1",
+                 "--connect-timeout", "1", "--quiet", "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "ucx://127.0.0.1:1" in err and "RuntimeError: comm layer unavailable" in err
+
+
 def test_evaluate_ends_with_exit_code_3_when_a_sequence_lost_every_frame(small_sample, tmp_path, capsys):
     import shutil
 
@@ -112,3 +147,24 @@ def test_evaluate_ends_with_exit_code_3_when_a_sequence_lost_every_frame(small_s
     captured = capsys.readouterr()
     assert "no frame could be tracked in rgbd_dataset_freiburg1_blind" in captured.err
     assert (tmp_path / "e" / "summary.csv").is_file()  # the summary is written all the same
+
+
+def test_evaluate_ends_with_exit_code_3_when_a_sequence_gave_no_relative_pose(small_sample, tmp_path, capsys):
+    """Its first frame tracked, every later one lost: no relative pose, as covo run reports with exit code 3."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    good, bad = small_sample(3), tmp_path / "rgbd_dataset_freiburg1_first_only"
+    shutil.copytree(good, bad)
+    for png in sorted((bad / "depth").glob("*.png"))[1:]:  # only the first frame has depth
+        cv2.imwrite(str(png), np.zeros((480, 640), np.uint16))
+    out = tmp_path / "e"
+    assert main(["evaluate", str(good), str(bad), "--out", str(out), "--quiet", "--no-plots", "--workers", "1"]) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and good.name not in err
+    assert "no relative pose could be estimated between any two frames of rgbd_dataset_freiburg1_first_only" in err
+    rows = _rows(out)  # the summary is written all the same
+    assert (rows[bad.name]["frames"], rows[bad.name]["lost"]) == ("3", "2") and rows[good.name]["lost"] == "0"
+    assert main(["run", str(bad), "--out", str(tmp_path / "r"), "--quiet", "--no-plots"]) == 3

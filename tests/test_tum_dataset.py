@@ -311,6 +311,28 @@ def test_a_line_written_twice_in_an_image_list_is_read_once(tmp_path, name):
     assert twice[1] == plain[1]
 
 
+@pytest.mark.parametrize("name", ["rgb.txt", "depth.txt"])
+def test_one_image_under_two_stamps_names_file_lines_and_image(tmp_path, name, capsys):
+    """One image listed at two instants would give a pair without motion under a wrong stamp: an
+    error naming the list, both lines and the image, however the path is spelt."""
+    import re
+
+    from covo_gtsam.cli import main
+
+    seq = make_sequence(tmp_path)
+    lines = (seq / name).read_text().splitlines()
+    k = next(no for no, ln in enumerate(lines) if ln[:1].isdigit())  # the first image's line, 0-based
+    image = lines[k].split()[1]
+    lines[k + 2] = f"{lines[k + 2].split()[0]} ./{image}"  # the third stamp names the first image again
+    (seq / name).write_text("\n".join(lines) + "\n")
+    needle = f"{name}:{k + 3}: image ./{image} is listed at line {k + 1} already"
+    with pytest.raises(DatasetError, match=re.escape(needle)):
+        TumSequence(seq)
+    assert main(["run", str(seq), "--out", str(tmp_path / "o"), "--quiet", "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and needle in err and str(seq / name) in err
+
+
 def test_repeated_groundtruth_stamp(tmp_path):
     """A ground-truth stamp repeated with another pose is an error naming both lines; a line repeated
     exactly (also with the quaternion's sign flipped) is dropped, leaving the samples as they were."""

@@ -17,7 +17,9 @@ colour image and its depth image.
   (:func:`covo_gtsam.datasets.tum.associate`: at most 0.02 s apart, one-to-one, smallest difference
   first); a frame's timestamp is its colour stamp.
 * Camera: intrinsics ``K`` and ``plumb_bob`` distortion ``D = [k1 k2 p1 p2 k3]`` of the first
-  message on the camera-info topic, unless a camera is given.
+  message on the camera-info topic, unless a camera is given (the message is then not read). It
+  goes through the checks of a camera file (:mod:`covo_gtsam.camera_file`): one that fails them is a
+  :class:`DatasetError` naming the bag and the topic.
 * Ground truth: the chain of ``/tf`` and ``/tf_static`` transforms (``tf2_msgs/TFMessage``)
   from ``gt_parent`` (default ``world``) down to ``gt_frame`` (default: the colour images'
   ``frame_id``), e.g. in the TUM bags ``/world -> /kinect`` (motion capture) and the fixed links
@@ -123,7 +125,8 @@ class RosbagSequence:
     Raises:
         ConfigError: ``rosbags`` is not installed.
         DatasetError: the bag cannot be read, a topic is missing or has another message type, an
-            encoding is not supported, or no frame can be associated.
+            encoding is not supported, the camera info fails the camera checks (without a given
+            camera), or no frame can be associated.
     """
 
     def __init__(self, path: str | os.PathLike, camera=None, rgb_topic: str = DEFAULT_TOPICS["rgb_topic"],
@@ -202,7 +205,7 @@ class RosbagSequence:
                                            f"depth must be one of {', '.join(DEPTH_ENCODINGS)}")
                     depth_t.append(_stamp(msg.header))
                 elif conn.topic == self.camera_info_topic:
-                    if self._info_camera is None:
+                    if self._info_camera is None and self._camera is None:  # a given camera replaces it
                         self._info_camera = self._camera_from_info(msg)
                 else:
                     static = conn.topic == "/tf_static"
@@ -256,24 +259,22 @@ class RosbagSequence:
         return total, valid
 
     def _camera_from_info(self, msg):
-        from ..camera import Camera
+        """The camera of a ``sensor_msgs/CameraInfo`` message, through the checks of a camera file
+        (:func:`~covo_gtsam.camera_file.checked_camera`: ``K`` without skew and with the third row
+        ``0 0 1``, the principal point inside the image, focal lengths in range, a ``plumb_bob``
+        distortion invertible over the image)."""
+        from ..camera_file import check_camera_matrix, checked_camera, plumb_bob
 
-        K = np.asarray(_field(msg, "k", "K"), dtype=float).reshape(3, 3)
-        D = np.asarray(_field(msg, "d", "D"), dtype=float).reshape(-1)
-        model = msg.distortion_model
-        if D.size and np.any(D != 0) and model not in ("plumb_bob", "rational_polynomial"):
-            raise DatasetError(f"{self.path}: {self.camera_info_topic}: distortion model {model!r} is not "
-                               "supported (plumb_bob: k1 k2 p1 p2 k3); pass --camera")
-        if model == "rational_polynomial" and D.size > 5 and np.any(D[5:] != 0):
-            raise DatasetError(f"{self.path}: {self.camera_info_topic}: rational_polynomial distortion with "
-                               "k4..k6 is not supported (plumb_bob: k1 k2 p1 p2 k3); pass --camera")
-        dist = np.zeros(5)
-        dist[: min(5, D.size)] = D[:5]
+        where = f"{self.path}: {self.camera_info_topic}"
         try:
-            return Camera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(dist), width=int(msg.width),
-                          height=int(msg.height), name="camera_info")
+            K = [float(k) for k in _field(msg, "k", "K")]
+            check_camera_matrix(where, K, key="K", item="K")
+            dist = plumb_bob(where, msg.distortion_model, _field(msg, "d", "D"))
+            values = {"fx": K[0], "fy": K[4], "cx": K[2], "cy": K[5], "dist": dist, "width": int(msg.width),
+                      "height": int(msg.height), "name": "camera_info"}
+            return checked_camera(where, values)
         except ConfigError as exc:
-            raise DatasetError(f"{self.path}: {self.camera_info_topic}: {exc}") from exc
+            raise DatasetError(f"{exc}; pass --camera") from exc
 
     @property
     def camera(self):

@@ -49,15 +49,17 @@ def read_file_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
     """Timestamps (N,) in s and file names of a TUM ``rgb.txt`` / ``depth.txt`` (``timestamp filename`` lines).
 
     ``#`` comment lines and blank lines are skipped, and so is a line that repeats an earlier one
-    exactly (the same timestamp and file: an extraction that wrote it twice). A malformed line, or a
+    exactly (the same timestamp and file: an extraction that wrote it twice). A malformed line, a
     timestamp that an earlier line already has with another file (two images at one instant:
-    association by time could not tell them apart), raises :class:`DatasetError` naming the file
-    and line number.
+    association by time could not tell them apart), or a file that an earlier line already has with
+    another timestamp (one image at two instants: a frame pair without motion under a wrong stamp)
+    raises :class:`DatasetError` naming the file and the line numbers.
     """
     p = Path(path)
     stamps, names = [], []
     first_line: dict[float, int] = {}
     name_at: dict[float, str] = {}
+    listed_at: dict[str, tuple[int, str]] = {}  # image path (normalised) -> (line, timestamp as written)
     for no, s in data_lines(p):
         parts = s.split()
         try:
@@ -68,11 +70,17 @@ def read_file_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:
                 raise ValueError
         except ValueError:
             raise DatasetError(f"{p}:{no}: expected 'timestamp filename', got {s[:80]!r}") from None
+        image = os.path.normpath(parts[1])
         if t in first_line:
-            if name_at[t] == parts[1]:  # the same line again
+            if os.path.normpath(name_at[t]) == image:  # the same line again
                 continue
             raise DatasetError(f"{p}:{no}: timestamp {parts[0]} repeats the one of line {first_line[t]} (two "
                                "images at one instant; each image needs its own timestamp)")
+        if image in listed_at:
+            line, stamp = listed_at[image]
+            raise DatasetError(f"{p}:{no}: image {parts[1]} is listed at line {line} already, with timestamp {stamp} "
+                               f"(here {parts[0]}): one image at two instants; each timestamp needs its own image")
+        listed_at[image] = (no, parts[0])
         first_line[t], name_at[t] = no, parts[1]
         stamps.append(t)
         names.append(parts[1])
@@ -199,9 +207,10 @@ class TumSequence:
     frame index) and :meth:`images` (frames in order).
 
     Raises :class:`DatasetError` when the folder, ``rgb.txt`` or ``depth.txt`` is missing, a line
-    is malformed, a timestamp repeats within ``rgb.txt`` or ``depth.txt`` (or within
-    ``groundtruth.txt`` with a different pose; exactly repeated ground-truth samples are dropped),
-    no frame can be associated, or no associated frame has both of its images.
+    is malformed, a timestamp or an image repeats within ``rgb.txt`` or ``depth.txt`` (exactly
+    repeated lines are read once), a timestamp repeats within ``groundtruth.txt`` with a different
+    pose (exactly repeated ground-truth samples are dropped), no frame can be associated, or no
+    associated frame has both of its images.
     """
 
     def __init__(self, path: str | os.PathLike, camera=None, max_dt: float = 0.02, max_gap: float = 0.1,
