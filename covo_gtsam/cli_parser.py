@@ -207,7 +207,8 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
         help="run covo on many sequences (TUM folders or ROS bags) and summarise, locally or on Dask",
         description="Run `covo run` on each sequence into DIR/<name>/ and write DIR/summary.csv, DIR/summary.md "
         "(frames, lost, RPE 1 and 30 frames, ATE, ANEES, share of NEES above 9.35, ANEES of the 30-pair chains, "
-        "frames/s per sequence) and "
+        "the highest ANEES of the blocks of 60 pairs, frames/s per sequence; every NEES adds the ground truth's own "
+        "jitter when its samples allow measuring it) and "
         "DIR/plots/summary.png. The runs go to a local process pool (default one per sequence, at most one per "
         "core) or to a Dask distributed cluster; the numbers do not depend on where they ran.",
     )

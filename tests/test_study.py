@@ -10,7 +10,7 @@ import pytest
 from covo_gtsam.cli import main
 
 NUMBERS = ("frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r", "above_9.35_t", "above_9.35_r",
-           "chain_anees_t", "chain_anees_r")
+           "chain_anees_t", "chain_anees_r", "worst_60_t", "worst_60_r")
 
 
 def _rows(out):
@@ -35,6 +35,7 @@ def test_evaluate_serial_pool_and_dask_give_the_same_numbers(fr1_rpy_dir, fr1_de
     # each row is that sequence's covo run
     m = json.loads((tmp_path / "serial" / fr1_rpy_dir.name / "metrics.json").read_text())
     assert float(rpy["rpe1_m"]) == m["rpe_1"]["trans_rmse"]
+    assert rpy["worst_60_t"] == "" and m["nees_breakdown"]["windows"] is None  # 11 pairs: no window of 60
     assert (tmp_path / "serial" / "summary.md").read_text().count("\n") == 4
     assert (tmp_path / "serial" / "plots" / "summary.png").is_file()
 
@@ -168,3 +169,13 @@ def test_evaluate_ends_with_exit_code_3_when_a_sequence_gave_no_relative_pose(sm
     rows = _rows(out)  # the summary is written all the same
     assert (rows[bad.name]["frames"], rows[bad.name]["lost"]) == ("3", "2") and rows[good.name]["lost"] == "0"
     assert main(["run", str(bad), "--out", str(tmp_path / "r"), "--quiet", "--no-plots"]) == 3
+
+
+def test_summary_row_takes_the_worst_window_from_the_breakdown():
+    from covo_gtsam.study import COLUMNS, summary_row
+
+    windows = {"anees_translation": {"highest": 4.2}, "anees_rotation": {"highest": 2.9}}
+    row = summary_row("s", {"frames": 300, "nees_breakdown": {"windows": windows}})
+    assert (row["worst_60_t"], row["worst_60_r"]) == (4.2, 2.9) and set(COLUMNS) <= set(row)
+    assert summary_row("s", {"nees_breakdown": {"windows": None}})["worst_60_t"] is None
+    assert summary_row("s", {})["worst_60_r"] is None  # no ground truth
