@@ -256,7 +256,7 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
                      help="let the fitted terms take in the ground truth's own rotation jitter too (default: that "
                      "jitter, measured from all its samples as reference_jitter in metrics.json, is held as a known "
                      "term, so the terms describe the camera alone and covo's NEES adds the reference's jitter back "
-                     "when it checks against one)")
+                     "when it checks against one; terms fitted with this flag have the jitter twice in such a check)")
     _output_arguments(cal, plots=False)
     cal.set_defaults(func=handlers["calibrate"])
     return parser

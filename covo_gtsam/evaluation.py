@@ -221,7 +221,8 @@ class RunEvaluation:
     def to_dict(self) -> dict:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then with ground truth
         ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`,
-        ``chains``, ``nees_breakdown``, ``reference_jitter`` and ``nees_with_reference_jitter``, then ``self_calibration`` and ``version`` when they are set."""
+        ``chains``, ``nees_breakdown``, ``reference_jitter`` and ``nees_with_reference_jitter``, then
+        ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
             "sequence": self.sequence,
             "frames": self.frames,
@@ -373,8 +374,17 @@ def _computed(reasons: dict, name: str, compute, reason: str | None):
         except (InputError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             reason = f"cannot be computed ({exc})"
         else:
-            if all(math.isfinite(v) for v in value.values() if isinstance(v, (int, float))):
+            if _finite(value):
                 return value
             reason = "not finite (ground truth or estimates too large for double precision)"
     reasons[name] = reason
     return None
+
+
+def _finite(value) -> bool:
+    """Every number in ``value`` (nested dicts and lists; None allowed) is finite."""
+    if isinstance(value, dict):
+        return all(_finite(v) for v in value.values())
+    if isinstance(value, (list, tuple)):
+        return all(_finite(v) for v in value)
+    return not isinstance(value, (int, float)) or math.isfinite(value)

@@ -7,6 +7,8 @@ body twist of each pair is ``Log(T_true) / Δt`` (rad/s, m/s; ``Δt`` from the f
 a pair's angular acceleration is the change of that angular velocity from the pair before it
 (when that pair ends where this one starts) over the interval, ``|ω_k − ω_{k−1}| / Δt_k``
 (rad/s²; the two pairs' body frames are one frame apart, which a first-order magnitude ignores).
+Frame to frame that is every pair but a segment's first; with keyframes only a pair whose reference
+is the previous pair's current frame has one, and it compares twists over that pair's interval.
 """
 
 from __future__ import annotations
@@ -79,7 +81,6 @@ def window_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray, w: int = WINDOW
         out[f"anees_{name}"] = {"lowest": float(anees.min()), "median": float(np.median(anees)),
                                 "highest": float(anees.max()), "share_above_upper_95": float(np.mean(anees > upper))}
     return out
-
 
 
 def nees_breakdown(T_true: np.ndarray, ref_stamps: np.ndarray, cur_stamps: np.ndarray,

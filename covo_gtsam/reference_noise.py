@@ -85,8 +85,8 @@ def pair_jitter_covariances(stamps: np.ndarray, rotation_sd: np.ndarray, ref_sta
     two samples ``a`` of the way (0..1), so it keeps ``(1 - a)^2 + a^2`` of a sample's variance,
     the pair the sum of its two frames'. Rotation block only (the translation jitter, a tenth of a
     millimetre on TUM's, is left out); the axes are the frames', as the pair's error's to first
-    order. ``stamps`` (M,) are the reference's sample times, sorted."""
-    t = np.asarray(stamps, dtype=float).reshape(-1)
+    order. ``stamps`` (M,) are the reference's sample times, in any order."""
+    t = np.sort(np.asarray(stamps, dtype=float).reshape(-1))
 
     def kept(q: np.ndarray) -> np.ndarray:
         hi = np.clip(np.searchsorted(t, q), 1, len(t) - 1)

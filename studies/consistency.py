@@ -377,6 +377,8 @@ def chain_tables(pairs: dict) -> list[str]:
             est, covs = compose_chains(p["T_est"], p["cov"], w)
             covs = covs + p["jitter"](p["t_ref"][:len(est)], p["t_cur"][w - 1:])  # the reference's, at the ends
             true, _ = compose_chains(p["T_true"], p["cov"], w)
+            whole = p["end"][w - 1:] - p["end"][:len(est)] == w - 1  # no window across a gap
+            est, covs, true = est[whole], covs[whole], true[whole]
             xi = relative_pose_tangent_errors(est, true)
             nt, nr = nees(xi[:, 3:], covs[:, 3:, 3:]), nees(xi[:, :3], covs[:, :3, :3])
             cells.append(f"{nt.mean():.2f} / {nr.mean():.2f}; {100 * np.mean(nt > 9.35):.0f} % / "

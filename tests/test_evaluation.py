@@ -106,6 +106,18 @@ def test_the_nees_adds_the_references_jitter_to_each_covariance(sample_run):
     assert not plain.nees_with_reference_jitter and np.all(plain.nees_rotation > ev.nees_rotation)
     np.testing.assert_allclose(plain.nees_translation, ev.nees_translation, rtol=1e-12)  # rotation block only
     assert np.all(plain.chain_nees_rotation > ev.chain_nees_rotation)
+    # a chain's reference error is that of its two end frames: the intermediate references cancel
+    from covo_gtsam.covariance import compose_chains
+
+    T = np.array([s.relative.matrix() for s in pairs])
+    C = np.array([s.covariance for s in pairs])
+    est, C_chain = compose_chains(T, C, 30)
+    for m in range(len(est)):
+        first, last = pairs[m].ref_timestamp, pairs[m + 29].timestamp
+        Cr = C_chain[m][:3, :3] + np.diag(var) * (kept(first) + kept(last))
+        true = np.linalg.inv(ev.ground_truth[first]) @ ev.ground_truth[last]
+        xi = gtsam.Pose3.Logmap(gtsam.Pose3(est[m]).between(gtsam.Pose3(true)))[:3]
+        assert ev.chain_nees_rotation[m] == pytest.approx(xi @ np.linalg.solve(Cr, xi), rel=1e-9)
 
 
 def test_without_the_references_samples_the_jitter_says_why(sample_run):

@@ -89,3 +89,26 @@ def test_fr1_mocap_jitters_most_about_the_cameras_x_axis(fr1_rpy_dir):
     rot = np.rad2deg(out["rotation_rad"])
     assert 0.05 < rot[0] < 0.09 and np.all(rot[1:] < 0.04) and rot[0] > 2 * rot[1:].max()
     assert np.all(out["translation_m"] < 0.2e-3)
+
+
+def test_pair_jitter_covariance_matches_a_monte_carlo_of_interpolated_sample_noise():
+    """The reference interpolated at a frame stamp keeps (1 - a)^2 + a^2 of a sample's variance;
+    a pair measured against it the sum over its two frames. Oracle: independent noise drawn per
+    sample, interpolated linearly at the frames (np.interp), differenced; the stamps in any order."""
+    from covo_gtsam.reference_noise import pair_jitter_covariances
+
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.008, 0.012, 400))  # about 100 Hz, uneven
+    sd = np.array([0.0012, 0.0005, 0.0004])  # rad per axis
+    ref = rng.uniform(t[5], t[-40], 6)
+    cur = ref + 1 / 30
+    draws = rng.normal(size=(20000, len(t), 3)) * sd
+
+    def weights(q: float) -> np.ndarray:  # np.interp's weight of each sample at q
+        return np.array([np.interp(q, t, e) for e in np.eye(len(t))])
+
+    C = pair_jitter_covariances(rng.permutation(t), sd, ref, cur)
+    for i in range(len(ref)):
+        err = np.einsum("dsk,s->dk", draws, weights(ref[i]) - weights(cur[i]))  # (draws, 3)
+        np.testing.assert_allclose(np.var(err, axis=0), np.diag(C[i])[:3], rtol=0.05)
+        assert np.all(C[i][3:, :] == 0) and np.all(C[i][:, 3:] == 0)
