@@ -269,8 +269,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                 raise InputError("no samples of its own")
             reference_sd = np.deg2rad(reference_statistics(seq.gt_samples)["rotation_deg"])
         except InputError as exc:
-            no_jitter = (f"covo: warning: {seq.path}: the ground truth's own jitter cannot be measured ({exc}; it "
-                         "needs evenly spaced samples, at least 13); the fitted terms take it in")
+            no_jitter = (f"covo: warning: {seq.path}: the ground truth's own jitter cannot be measured ({exc}); the "
+                         "fitted terms take it in")
     with _lock_outputs(out, ["calibration.json"]):
         fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
                                          progress=not args.quiet, reference_sd=reference_sd)

@@ -256,3 +256,18 @@ def test_keyframe_chains_follow_each_pair_to_its_reference():
     assert three["nees_pairs"] == 3 and four["nees_pairs"] == 1  # 5, 6, 7; and 7
     for out in (three, four):
         assert out["anees_translation"] < 1e-12 and out["anees_rotation"] < 1e-12
+
+
+def test_the_jitter_is_not_measured_from_samples_too_far_apart(sample_run):
+    """Every 3rd sample of the fr1 reference (33 Hz): the quadratic through the neighbours no longer
+    follows the motion, so no jitter is reported and the NEES is the plain one."""
+    from covo_gtsam.datasets.tum import TumSequence
+
+    seq = TumSequence(SAMPLE_DIR)
+    stamps, poses = seq.gt_samples
+    seq.gt_samples = (stamps[::3], poses[::3])
+    ev = evaluate_run(sample_run.steps, seq, 1.0)
+    assert ev.reference is None and "too far apart" in ev.not_computed["reference_jitter"]
+    assert not ev.nees_with_reference_jitter
+    seq.gt_samples = (stamps[::1], poses[::1])
+    assert evaluate_run(sample_run.steps, seq, 1.0).nees_with_reference_jitter
