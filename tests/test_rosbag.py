@@ -190,6 +190,12 @@ def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys)
     rs = RosbagSequence(bag)
     assert rs.gt_valid.all()
     np.testing.assert_allclose(rs.groundtruth, seq.groundtruth[:N], atol=1e-6)
+    # the chain's samples are groundtruth.txt's own within the bag's span (the moving link's stamps,
+    # the fixed links composed in): the reference's jitter is measured from them as from the file
+    stamps, poses = seq.gt_samples
+    span = (stamps > seq.timestamps[0] - 0.2) & (stamps < seq.timestamps[N - 1] + 0.2)
+    np.testing.assert_allclose(rs.gt_samples[0], stamps[span], atol=1e-6)
+    np.testing.assert_allclose(rs.gt_samples[1], poses[span], atol=1e-6)
     # the colour-depth offsets the run uses come from the depth messages' own stamps, as from depth.txt
     # (tens of microseconds in these frames: a bag without them would fail this)
     np.testing.assert_allclose(rs.depth_timestamps - rs.timestamps, seq.depth_timestamps[:N] - seq.timestamps[:N],
@@ -202,6 +208,7 @@ def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys)
     mr = json.loads((tmp_path / "ref_out" / "metrics.json").read_text())
     assert mb["rpe_1"]["trans_rmse"] == pytest.approx(mr["rpe_1"]["trans_rmse"], rel=1e-4)
     assert mb["anees_translation"] == pytest.approx(mr["anees_translation"], rel=1e-3)
+    assert mb["nees_with_reference_jitter"] and mb["reference_jitter"]["samples"] > 0
     check_output_bag(tmp_path / "bag_out", tmp_path / "bag_out" / "odometry.bag", FRAME)
 
 
@@ -458,3 +465,18 @@ def test_bag_output_never_replaces_the_bag_it_reads(sample_dir, tmp_path, capsys
     assert main(["run", str(bag), "--out", str(out), "--quiet", "--no-plots", "--bag-out", "ros1"]) == 2
     assert "is the sequence this run reads" in capsys.readouterr().err
     assert bag.is_file() and RosbagSequence(bag).timestamps.shape == (3,)
+
+
+def test_chain_samples_need_exactly_one_moving_link():
+    from covo_gtsam.datasets.rosbag import _chain_samples
+
+    def link(stamps, xs, static=False):
+        return {"static": static, "s": [(t, (x, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)) for t, x in zip(stamps, xs)]}
+
+    fixed = link([0.0], [0.5], static=True)
+    moving = link([0.2, 0.1, 0.3], [1.0, 2.0, 3.0])
+    stamps, poses = _chain_samples([fixed, moving, link([0.0, 1.0], [0.25, 0.25])])  # constant: fixed
+    np.testing.assert_allclose(stamps, [0.1, 0.2, 0.3])  # in time order
+    np.testing.assert_allclose(poses[:, 0, 3], [2.75, 1.75, 3.75])  # 0.5 + moving + 0.25
+    assert _chain_samples([moving, link([0.0, 1.0], [0.0, 1.0])]) is None  # two moving links
+    assert _chain_samples([fixed]) is None

@@ -112,14 +112,45 @@ def decode_depth(msg, topic: str = "") -> np.ndarray:
     return raw.astype(np.float32) * _MM
 
 
+def _link_poses(link: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (M,) and poses (M, 4, 4) of a tf link's samples."""
+    stamps = np.array([x[0] for x in link["s"]])
+    return stamps, make_pose(quat_to_matrix(np.array([x[2] for x in link["s"]])), np.array([x[1] for x in link["s"]]))
+
+
+def _is_fixed(link: dict, poses: np.ndarray) -> bool:
+    return link["static"] or np.ptp(poses, axis=0).max() == 0
+
+
+def _chain_samples(links: list[dict]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The chain's poses (parent first) at the samples of its one moving link, the fixed links
+    composed in (their last pose), or None with more or fewer moving links than one."""
+    parts = [_link_poses(link) for link in links]
+    moving = [i for i, (link, (_, poses)) in enumerate(zip(links, parts)) if not _is_fixed(link, poses)]
+    if len(moving) != 1:
+        return None
+    stamps, samples = parts[moving[0]]
+    before, after = np.eye(4), np.eye(4)
+    for i, (_, poses) in enumerate(parts):
+        if i < moving[0]:
+            before = before @ poses[-1]
+        elif i > moving[0]:
+            after = after @ poses[-1]
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], before @ samples[order] @ after
+
+
 class RosbagSequence:
     """A ROS bag with colour and depth image topics, read like a
     :class:`~covo_gtsam.datasets.tum.TumSequence`.
 
     Attributes: ``path``, ``name`` (file or folder name without ``.bag``), ``timestamps`` (colour
     stamps of the associated frames, s, (K,)), ``groundtruth`` (T_world,cam (K, 4, 4) from ``/tf``, or
-    None), ``gt_valid`` (K,), ``camera`` (the given camera or preset name, else the one of the
-    camera info), ``camera_frame`` (the colour images' ``frame_id``), ``missing_files`` (empty).
+    None), ``gt_valid`` (K,), ``gt_samples`` (the ground truth's own samples ``(stamps (M,) s,
+    T_world,cam (M, 4, 4))`` at the stamps of the chain's one moving link, the fixed links composed
+    in; None without a chain or with more than one moving link), ``camera`` (the given camera or
+    preset name, else the one of the camera info), ``camera_frame`` (the colour images'
+    ``frame_id``), ``missing_files`` (empty).
     Images are decoded by :meth:`images`.
 
     Raises:
@@ -232,6 +263,7 @@ class RosbagSequence:
         self.camera_frame = frame_id.lstrip("/") or "camera"
         self.gt_frame = (gt_frame or self.camera_frame).lstrip("/")
         self.groundtruth = None
+        self.gt_samples = None
         self.gt_valid = np.zeros(len(self.timestamps), bool)
         chain = []
         frame = self.gt_frame
@@ -240,6 +272,7 @@ class RosbagSequence:
             frame = tf[frame]["parent"]
         if chain and frame == self.gt_parent:
             self.groundtruth, self.gt_valid = self._compose_chain(chain[::-1], max_gap)
+            self.gt_samples = _chain_samples(chain[::-1])
 
     def _compose_chain(self, links: list[dict], max_gap: float) -> tuple[np.ndarray, np.ndarray]:
         """``T_world,cam`` (K, 4, 4) and validity (K,) at the frame stamps from tf links, parent first."""
@@ -247,9 +280,8 @@ class RosbagSequence:
         total = np.tile(np.eye(4), (K, 1, 1))
         valid = np.ones(K, bool)
         for link in links:
-            stamps = np.array([x[0] for x in link["s"]])
-            poses = make_pose(quat_to_matrix(np.array([x[2] for x in link["s"]])), np.array([x[1] for x in link["s"]]))
-            if link["static"] or np.ptp(poses, axis=0).max() == 0:
+            stamps, poses = _link_poses(link)
+            if _is_fixed(link, poses):
                 T, ok = np.broadcast_to(poses[-1], (K, 4, 4)), np.ones(K, bool)
             else:
                 T, ok = interpolate_poses(stamps, poses, self.timestamps, max_gap)
