@@ -83,8 +83,31 @@ def ellipse_xy(ax, center: np.ndarray, cov2: np.ndarray, nsigma: float = 3.0, **
     ax.plot(pts[:, 0], pts[:, 1], **kw)
 
 
-RUN_PLOTS = ("trajectory.png", "nees.png", "rpe.png")
+RUN_PLOTS = ("trajectory.png", "nees.png", "nees_motion.png", "rpe.png")
 SIMULATION_PLOTS = ("nees.png", "errors_bounds.png")
+
+
+def anees_bars(ax, bins: list[dict], title: str, unit: str, dof: int = 3) -> None:
+    """ANEES t / r per bin of ``nees_breakdown`` (bins without pairs left out), each bin's 95 %
+    band of a consistent covariance over its pair count (``chi2_quantile(p, dof n) / n``)."""
+    bins = [b for b in bins if b["pairs"]]
+    x = np.arange(len(bins))
+    for key, colour, shift in (("anees_translation", "tab:blue", -0.2), ("anees_rotation", "tab:orange", 0.2)):
+        ax.bar(x + shift, [b[key] for b in bins], width=0.4, color=colour, label=key.split("_")[1])
+    for i, b in enumerate(bins):
+        n = b["pairs"]
+        lo, hi = chi2_quantile(0.025, dof * n) / n, chi2_quantile(0.975, dof * n) / n
+        ax.plot([i - 0.45, i + 0.45], [lo, lo], "k:", lw=0.8)
+        ax.plot([i - 0.45, i + 0.45], [hi, hi], "k:", lw=0.8)
+    ax.axhline(dof, color="k", lw=0.8)
+    labels = [f"{b['range'][0]:g}-{b['range'][1]:g}" if b["range"][1] is not None else f">{b['range'][0]:g}"
+              for b in bins]
+    ax.set_xticks(x, [f"{lab}\n({b['pairs']})" for lab, b in zip(labels, bins)], fontsize=8)
+    ax.set_xlabel(f"{unit} (pairs)")
+    ax.set_ylabel("ANEES (3 = consistent; dotted: 95 % band)")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    ax.grid(True, axis="y", alpha=0.3)
 
 
 def plot_run(steps: Sequence, evaluation, out_dir: Path) -> list[Path] | None:
@@ -135,6 +158,15 @@ def plot_run(steps: Sequence, evaluation, out_dir: Path) -> list[Path] | None:
         nees_histogram(axes[1], evaluation.nees_rotation, "rotation NEES per frame pair",
                        chains=evaluation.chain_nees_rotation, chain_label=label)
         written.append(save_figure(fig, out_dir / "nees.png"))
+
+    if evaluation.breakdown is not None:
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+        bd = evaluation.breakdown
+        anees_bars(axes[0], bd["by_angular_speed_rad_s"], "ANEES by the true angular speed", "rad/s")
+        anees_bars(axes[1], bd["by_angular_acceleration_rad_s2"], "ANEES by the true angular acceleration",
+                   "rad/s$^2$")
+        fig.suptitle(f"where the covariance holds, {evaluation.sequence}")
+        written.append(save_figure(fig, out_dir / "nees_motion.png"))
 
     data_t, data_r, labels = [], [], []
     for delta, (tr, rot) in evaluation.rpe_errors.items():
