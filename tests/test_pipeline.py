@@ -171,19 +171,26 @@ def test_constant_velocity_prediction(sample_dir, keyframes):
 def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_dir, tmp_path):
     """The defaults of correlation_factor, the frame sigmas and the default frame-level terms are the
     maximum-likelihood fit on the consecutive pairs of frames 0-119 of the shared fr1_rpy frames
-    (per-point model alone, everything else default), rounded; and on pairs the fit has not seen
-    (frames 120-239) the fitted model explains the errors better than the per-point model alone
-    and better than the same model without its frame-level terms."""
+    (per-point model alone, everything else default; the ground truth's own jitter held as a known
+    term, as covo calibrate holds it), rounded; and on pairs the fit has not seen (frames 120-239)
+    the fitted model explains the errors better than the per-point model alone and better than the
+    same model without its frame-level terms (each with the reference's jitter added)."""
     pytest.importorskip("scipy")
     from covo_gtsam.calibration import ERROR_TERMS, log_likelihood
-    from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
+    from covo_gtsam.evaluation import (
+        ground_truth_lookup,
+        reference_covariances,
+        reference_statistics,
+        relative_ground_truth,
+    )
     from covo_gtsam.metrics import relative_pose_tangent_errors
     from covo_gtsam.odometry import OdometryConfig
     from covo_gtsam.pipeline import calibrate_sequence, stacked_bases
 
     seq = TumSequence(fr1_rpy_dir)
     default = OdometryConfig()
-    fit, first_half = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False)
+    sd = np.deg2rad(reference_statistics(seq.gt_samples)["rotation_deg"])
+    fit, first_half = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False, reference_sd=sd)
     assert 95 <= fit.pairs <= 100  # 119 pairs, less those of the first 20 frames (no clock yet) and flagged ones
     for name, value in fit.config_values().items():
         # a term the likelihood puts at 0 comes out of the fit (in log space) at about 1e-8 of its unit:
@@ -198,26 +205,30 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
     T_est, T_true, P = relative_ground_truth(pairs, lookup)
     err = relative_pose_tangent_errors(T_est, T_true)
     bases = stacked_bases(pairs)
-    with_terms = [default.sensor_covariance(p, None, {k: b[i] for k, b in bases.items()}) for i, p in enumerate(P)]
-    without = [default.sensor_covariance(p) for p in P]
-    assert log_likelihood(err, with_terms) > log_likelihood(err, P) + 10
+    J = reference_covariances(seq.gt_samples)([s.ref_timestamp for s in pairs], [s.timestamp for s in pairs])
+    with_terms = np.array([default.sensor_covariance(p, None, {k: b[i] for k, b in bases.items()})
+                           for i, p in enumerate(P)]) + J
+    without = np.array([default.sensor_covariance(p) for p in P]) + J
+    assert log_likelihood(err, with_terms) > log_likelihood(err, P) + 10  # the per-point model as reported
+    assert log_likelihood(err, with_terms) > log_likelihood(err, P + J) + 5  # ... even given the reference's jitter
     assert log_likelihood(err, with_terms) > log_likelihood(err, without)
     assert set(bases) == set(ERROR_TERMS)
 
 
 @pytest.mark.realdata
 @pytest.mark.slow
-def test_calibration_with_the_references_jitter_held_fits_the_cameras_frame_term(fr1_rpy_dir, tmp_path):
-    """Frames 0-119 of fr1_rpy with the ground truth's own rotation jitter held as a known term: the
-    frame term is 0.062 deg (0.096 with the jitter inside it; docs/derivation.md)."""
+def test_calibration_with_the_references_jitter_in_the_terms_takes_it_into_the_frame_term(fr1_rpy_dir, tmp_path):
+    """Frames 0-119 of fr1_rpy without the ground truth's own rotation jitter as a known term (covo
+    calibrate --jitter-in-terms): the frame term takes it in, 0.096 deg against the camera's 0.062
+    (docs/derivation.md, "The reference's own noise")."""
     pytest.importorskip("scipy")
+    from covo_gtsam.odometry import OdometryConfig
     from covo_gtsam.pipeline import calibrate_sequence
-    from covo_gtsam.reference_noise import reference_jitter
 
     seq = TumSequence(fr1_rpy_dir)
-    sd = reference_jitter(*seq.gt_samples)["rotation_rad"]
-    fit, _ = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False, reference_sd=sd)
-    assert fit.frame_sigma_rot_deg == pytest.approx(0.062, rel=0.05)
+    fit, _ = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False)
+    assert fit.frame_sigma_rot_deg == pytest.approx(0.096, rel=0.05)
+    assert OdometryConfig().sensor.frame_sigma_rot_deg == pytest.approx(0.062, rel=0.01)
 
 
 @pytest.mark.slow
