@@ -304,7 +304,8 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
     ev.reference = _computed(
         ev.not_computed, "reference_jitter", partial(reference_statistics, samples),
         "no frame was processed" if not steps else None if samples is not None else
-        "the ground truth's own samples are not at hand (only its poses at the frames)")
+        "the ground truth's own samples are not at hand (only its poses at the frames, as from a bag's tf chain "
+        "without exactly one moving link)")
     # what the reference's own jitter adds to each error measured against it (pair or chain ends)
     jitter = None if ev.reference is None else reference_covariances(samples, ev.reference)
     ev.nees_with_reference_jitter = jitter is not None
@@ -344,7 +345,7 @@ def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:
     no longer follows a hand-held motion and would report the motion as jitter (on fr1's reference
     taken every 2nd / 3rd sample, 0.11 / 0.16 deg about x against 0.069 at 100 Hz)."""
     stamps, poses = samples
-    usable = usable_poses(poses)
+    usable = usable_poses(poses) & np.isfinite(stamps)
     dt = float(np.median(np.diff(np.sort(stamps[usable])))) if usable.sum() > 1 else 0.0
     if dt > MAX_JITTER_INTERVAL_S:
         raise InputError(f"ground-truth samples {1e3 * dt:.0f} ms apart: too far apart to tell their jitter from the "
@@ -366,7 +367,8 @@ def reference_covariances(samples: tuple[np.ndarray, np.ndarray], reference: dic
     poses)`` and their :func:`reference_statistics` (computed if not given; :class:`InputError` when
     they do not allow it)."""
     reference = reference_statistics(samples) if reference is None else reference
-    return partial(pair_jitter_covariances, samples[0], np.deg2rad(reference["rotation_deg"]))
+    stamps = np.asarray(samples[0], dtype=float)
+    return partial(pair_jitter_covariances, stamps[np.isfinite(stamps)], np.deg2rad(reference["rotation_deg"]))
 
 
 #: Keys of :func:`consistency_metrics` (None when it cannot be computed).

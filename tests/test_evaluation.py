@@ -265,9 +265,38 @@ def test_the_jitter_is_not_measured_from_samples_too_far_apart(sample_run):
 
     seq = TumSequence(SAMPLE_DIR)
     stamps, poses = seq.gt_samples
-    seq.gt_samples = (stamps[::3], poses[::3])
+    for step in (2, 3):  # 50 and 33 Hz
+        seq.gt_samples = (stamps[::step], poses[::step])
+        ev = evaluate_run(sample_run.steps, seq, 1.0)
+        assert ev.reference is None and "too far apart" in ev.not_computed["reference_jitter"]
+        assert not ev.nees_with_reference_jitter
+    # a stamp that is not a number neither hides the sparse samples nor reaches the NEES
+    sparse = stamps[::3].copy()
+    sparse[5] = np.nan
+    seq.gt_samples = (sparse, poses[::3])
+    assert "too far apart" in evaluate_run(sample_run.steps, seq, 1.0).not_computed["reference_jitter"]
+    dense = stamps.copy()
+    dense[-1] = np.nan
+    seq.gt_samples = (dense, poses)
     ev = evaluate_run(sample_run.steps, seq, 1.0)
-    assert ev.reference is None and "too far apart" in ev.not_computed["reference_jitter"]
-    assert not ev.nees_with_reference_jitter
+    assert ev.nees_with_reference_jitter and np.all(np.isfinite(ev.nees_rotation))
     seq.gt_samples = (stamps[::1], poses[::1])
     assert evaluate_run(sample_run.steps, seq, 1.0).nees_with_reference_jitter
+
+
+@pytest.mark.parametrize("filled", [(), (0,), (5,), (0, 1, 2, 3, 4, 5)])
+def test_the_motion_figure_draws_any_bins(tmp_path, filled):
+    """ANEES bars by motion: no bin, only the first, only the open-ended last, or all filled."""
+    pytest.importorskip("matplotlib")
+    from covo_gtsam.nees_breakdown import SPEED_EDGES, by_bins
+    from covo_gtsam.plots import _plt, anees_bars, save_figure
+
+    centres = np.array([0.25, 0.75, 1.25, 1.75, 2.5, 4.0])
+    values = np.repeat(centres[list(filled)], 7) if filled else np.full(3, np.nan)
+    nees = np.full(values.shape, 3.0)
+    bins = by_bins(values, SPEED_EDGES, nees, nees)
+    assert sum(b["pairs"] for b in bins) == 7 * len(filled)
+    fig, ax = _plt().subplots()
+    anees_bars(ax, bins, "ANEES by speed", "rad/s")
+    assert len(ax.get_xticks()) == len(filled)
+    assert save_figure(fig, tmp_path / "bars.png").stat().st_size > 0

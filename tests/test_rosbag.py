@@ -469,14 +469,21 @@ def test_bag_output_never_replaces_the_bag_it_reads(sample_dir, tmp_path, capsys
 
 def test_chain_samples_need_exactly_one_moving_link():
     from covo_gtsam.datasets.rosbag import _chain_samples
+    from covo_gtsam.geometry import matrix_to_quat
 
-    def link(stamps, xs, static=False):
-        return {"static": static, "s": [(t, (x, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)) for t, x in zip(stamps, xs)]}
+    def link(stamps, poses, static=False):
+        return {"static": static, "s": [(t, tuple(P[:3, 3]), tuple(matrix_to_quat(P[:3, :3])))
+                                        for t, P in zip(stamps, poses)]}
 
-    fixed = link([0.0], [0.5], static=True)
-    moving = link([0.2, 0.1, 0.3], [1.0, 2.0, 3.0])
-    stamps, poses = _chain_samples([fixed, moving, link([0.0, 1.0], [0.25, 0.25])])  # constant: fixed
-    np.testing.assert_allclose(stamps, [0.1, 0.2, 0.3])  # in time order
-    np.testing.assert_allclose(poses[:, 0, 3], [2.75, 1.75, 3.75])  # 0.5 + moving + 0.25
-    assert _chain_samples([moving, link([0.0, 1.0], [0.0, 1.0])]) is None  # two moving links
-    assert _chain_samples([fixed]) is None
+    def pose(rx, ry, rz, t):
+        return gtsam.Pose3(gtsam.Rot3.RzRyRx(rx, ry, rz), np.array(t, float)).matrix()
+
+    A = pose(0.3, -0.2, 0.1, [0.5, 0.0, 1.0])  # world -> rig, fixed
+    C = pose(-1.5708, 0.0, -1.5708, [0.0, -0.02, 0.0])  # camera -> optical, fixed (on /tf, constant)
+    M = [pose(0.01 * k, 0.2, -0.1 * k, [k, 0.3, -k]) for k in (2, 1, 3, 1)]  # moving, out of order, a repeat
+    stamps, poses = _chain_samples([link([0.0], [A], static=True), link([0.2, 0.1, 0.3, 0.1], M),
+                                    link([0.0, 1.0], [C, C])])
+    np.testing.assert_allclose(stamps, [0.1, 0.2, 0.3])  # in time order, the repeated stamp once (the first)
+    np.testing.assert_allclose(poses, [A @ M[k] @ C for k in (1, 0, 2)], atol=1e-9)  # parent first
+    assert _chain_samples([link([0.2, 0.1], M[:2]), link([0.0, 1.0], M[2:])]) is None  # two moving links
+    assert _chain_samples([link([0.0], [A], static=True)]) is None  # none

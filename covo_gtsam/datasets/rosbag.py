@@ -123,8 +123,9 @@ def _is_fixed(link: dict, poses: np.ndarray) -> bool:
 
 
 def _chain_samples(links: list[dict]) -> tuple[np.ndarray, np.ndarray] | None:
-    """The chain's poses (parent first) at the samples of its one moving link, the fixed links
-    composed in (their last pose), or None with more or fewer moving links than one."""
+    """The chain's poses (parent first) at the samples of its one moving link (one per stamp, the
+    first, in time order), the fixed links composed in (their last pose), or None without exactly
+    one moving link."""
     parts = [_link_poses(link) for link in links]
     moving = [i for i, (link, (_, poses)) in enumerate(zip(links, parts)) if not _is_fixed(link, poses)]
     if len(moving) != 1:
@@ -137,7 +138,9 @@ def _chain_samples(links: list[dict]) -> tuple[np.ndarray, np.ndarray] | None:
         elif i > moving[0]:
             after = after @ poses[-1]
     order = np.argsort(stamps, kind="stable")
-    return stamps[order], before @ samples[order] @ after
+    stamps, samples = stamps[order], samples[order]
+    _, first = np.unique(stamps, return_index=True)  # a stamp published twice counts once
+    return stamps[first], before @ samples[first] @ after
 
 
 class RosbagSequence:
@@ -148,7 +151,7 @@ class RosbagSequence:
     stamps of the associated frames, s, (K,)), ``groundtruth`` (T_world,cam (K, 4, 4) from ``/tf``, or
     None), ``gt_valid`` (K,), ``gt_samples`` (the ground truth's own samples ``(stamps (M,) s,
     T_world,cam (M, 4, 4))`` at the stamps of the chain's one moving link, the fixed links composed
-    in; None without a chain or with more than one moving link), ``camera`` (the given camera or
+    in; None without a chain or without exactly one moving link), ``camera`` (the given camera or
     preset name, else the one of the camera info), ``camera_frame`` (the colour images'
     ``frame_id``), ``missing_files`` (empty).
     Images are decoded by :meth:`images`.
