@@ -365,15 +365,23 @@ def motion_table(data: Path) -> list[str]:
     return lines + [""]
 
 
-def acceleration_table(data: Path) -> list[str]:
-    """The default model's ANEES on consecutive pairs of fr1_rpy by the true angular acceleration
-    (:func:`covo_gtsam.nees_breakdown.true_motion`, as ``metrics.json``'s ``nees_breakdown``)."""
+def default_motion(data: Path) -> tuple:
+    """The default model on the consecutive pairs of fr1_rpy with ground truth: the sequence, the
+    pairs, their NEES t and r (against the reference with its jitter) and their true angular speed
+    and acceleration (:func:`covo_gtsam.nees_breakdown.true_motion`)."""
     seq = TumSequence(data / "tum" / RPY)
     lookup = ground_truth_lookup(seq)
     steps = pairs_with_truth(every_nth(seq, OdometryConfig(), 1), lookup)
     T_est, T_true, covs = against_reference(seq, steps, lookup)
     nt, nr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
-    _, accel = true_motion(T_true, [s.ref_timestamp for s in steps], [s.timestamp for s in steps])
+    speed, accel = true_motion(T_true, [s.ref_timestamp for s in steps], [s.timestamp for s in steps])
+    return seq, steps, nt, nr, speed, accel
+
+
+def acceleration_table(data: Path) -> list[str]:
+    """The default model's ANEES on consecutive pairs of fr1_rpy by the true angular acceleration
+    (:func:`covo_gtsam.nees_breakdown.true_motion`, as ``metrics.json``'s ``nees_breakdown``)."""
+    seq, steps, nt, nr, _, accel = default_motion(data)
     index = {t: i for i, t in enumerate(seq.timestamps)}
     end = np.array([index[s.timestamp] for s in steps])
     halves = (("frames 1-119", end <= 119), ("frames 120-239", end >= 120), ("all", end >= 0))
@@ -403,12 +411,7 @@ def whole_sequence_table(data: Path) -> list[str]:
     from covo_gtsam.geometry import invert_pose
     from covo_gtsam.io import load_tum_trajectory
 
-    seq = TumSequence(data / "tum" / RPY)
-    lookup = ground_truth_lookup(seq)
-    steps = pairs_with_truth(every_nth(seq, OdometryConfig(), 1), lookup)
-    T_est, T_true, covs = against_reference(seq, steps, lookup)
-    nt, nr = anees_cells(relative_pose_tangent_errors(T_est, T_true), covs)
-    shared_speed, accel = true_motion(T_true, [s.ref_timestamp for s in steps], [s.timestamp for s in steps])
+    seq, _, nt, nr, shared_speed, accel = default_motion(data)
     shared = by_bins(accel, ACCELERATION_EDGES, nr, nt)
     t, P = load_tum_trajectory(seq.path / "groundtruth.txt")
     period = float(np.median(np.diff(seq.timestamps)))
