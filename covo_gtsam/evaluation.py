@@ -190,6 +190,9 @@ class RunEvaluation:
     reference: dict | None = None
     #: whether the NEES values take the ground truth's own jitter into account (its samples were at hand)
     nees_with_reference_jitter: bool = False
+    #: :func:`consistency_statistics` of the pairs under the reported covariances alone, without the
+    #: reference's jitter (None when the NEES takes none)
+    without_reference_jitter: dict | None = None
     not_computed: dict[str, str] = field(default_factory=dict)
     #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
@@ -224,7 +227,8 @@ class RunEvaluation:
     def to_dict(self) -> dict:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then with ground truth
         ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`,
-        ``chains``, ``nees_breakdown``, ``reference_jitter`` and ``nees_with_reference_jitter``, then
+        ``chains``, ``nees_breakdown``, ``reference_jitter``, ``nees_with_reference_jitter`` and
+        ``without_reference_jitter``, then
         ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
             "sequence": self.sequence,
@@ -250,6 +254,7 @@ class RunEvaluation:
             out["nees_breakdown"] = self.breakdown
             out["reference_jitter"] = self.reference
             out["nees_with_reference_jitter"] = self.nees_with_reference_jitter
+            out["without_reference_jitter"] = self.without_reference_jitter
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
         if self.version is not None:
@@ -312,6 +317,7 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
     pairs = pairs_with_truth(steps, gt)
     T_est, T_true, covs = relative_ground_truth(pairs, gt)
     ref_stamps, cur_stamps = np.array([s.ref_timestamp for s in pairs]), np.array([s.timestamp for s in pairs])
+    reported = covs
     if jitter is not None and len(pairs):
         covs = covs + jitter(ref_stamps, cur_stamps)
 
@@ -321,6 +327,10 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
     no_pairs = None if len(T_est) else "no tracked frame pair has ground truth at both frames"
     ev.consistency = _computed(ev.not_computed, "anees", consistency, no_pairs)
+    if jitter is not None:  # the same against the reported covariances alone, for comparison
+        ev.without_reference_jitter = _computed(
+            ev.not_computed, "without_reference_jitter",
+            lambda: consistency_statistics(*relative_pose_nees(T_est, T_true, reported)), no_pairs)
 
     def chains():
         ev.chain_nees_rotation, ev.chain_nees_translation = chain_nees(steps, gt, jitter=jitter)

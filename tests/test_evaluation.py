@@ -13,7 +13,7 @@ from conftest import SAMPLE_DIR
 BASE_KEYS = ["sequence", "frames", "tracked_frames", "lost_frames", "lost", "restarts", "unassociated", "elapsed_s",
              "frames_per_second", "mean_pairs", "flagged_pairs", "flagged"]
 GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS, "chains",
-           "nees_breakdown", "reference_jitter", "nees_with_reference_jitter"]
+           "nees_breakdown", "reference_jitter", "nees_with_reference_jitter", "without_reference_jitter"]
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +104,8 @@ def test_the_nees_adds_the_references_jitter_to_each_covariance(sample_run):
     seq.gt_samples = None
     plain = evaluate_run(sample_run.steps, seq, 1.0)
     assert not plain.nees_with_reference_jitter and np.all(plain.nees_rotation > ev.nees_rotation)
+    # metrics.json keeps the plain statistics beside the ones with the jitter
+    assert plain.without_reference_jitter is None and ev.without_reference_jitter == plain.consistency
     np.testing.assert_allclose(plain.nees_translation, ev.nees_translation, rtol=1e-12)  # rotation block only
     assert np.all(plain.chain_nees_rotation > ev.chain_nees_rotation)
     # a chain's reference error is that of its two end frames: the intermediate references cancel
