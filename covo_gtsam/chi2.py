@@ -17,6 +17,7 @@ from .errors import InputError
 __all__ = [
     "CHI2_3_99",
     "CHI2_3_975",
+    "anees_band",
     "CHI2_6_MEDIAN",
     "SOURCES",
     "SQRT_CHI2_3_95",
@@ -123,6 +124,16 @@ def chi2_pdf(x: np.ndarray, dof: float) -> np.ndarray:
     dens = np.exp((k - 1.0) * np.log(xs) - xs / 2.0 - k * math.log(2.0) - math.lgamma(k))
     at0 = 0.5 if dof == 2 else (np.inf if dof < 2 else 0.0)
     return np.where(pos, dens, np.where(x == 0, at0, 0.0))
+
+
+def anees_band(pairs: int, dof: int = 3) -> tuple[float, float]:
+    """Two-sided 95 % band of the ANEES of ``pairs`` independent ``dof``-dimensional NEES values of
+    a consistent covariance: ``chi2_quantile(p, dof pairs) / pairs`` at p = 0.025 and 0.975
+    (1.55-4.92 for 8 pairs of 3 dof, 2.41-3.65 for 60)."""
+    n = int(pairs)
+    if n < 1:
+        raise InputError(f"the ANEES band needs at least one pair, got {pairs!r}")
+    return chi2_quantile(0.025, dof * n) / n, chi2_quantile(0.975, dof * n) / n
 
 
 #: chi2(3) 97.5 % quantile (9.3484): upper bound of a consistent 3-dof NEES; ``covo run`` reports

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .chi2 import chi2_quantile
+from .chi2 import anees_band
 from .metrics import se3_log
 
 #: bin edges of the true angular speed (rad/s)
@@ -70,11 +70,11 @@ def window_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray, w: int = WINDOW
     """ANEES t / r of the run's consecutive blocks of ``w`` pairs (in run order; a last block of
     fewer pairs left out): the lowest, median and highest window, and the share of windows whose
     ANEES lies above the upper end of the two-sided 95 % band of a consistent covariance
-    (``chi2_quantile(0.975, 3 w) / w``, 3.65 for 60 pairs); None without a full window."""
+    (:func:`~covo_gtsam.chi2.anees_band`, 3.65 for 60 pairs); None without a full window."""
     n = len(nees_tr) // w
     if n == 0:
         return None
-    upper = chi2_quantile(0.975, 3 * w) / w
+    upper = anees_band(w)[1]
     out: dict = {"pairs_per_window": int(w), "windows": int(n), "anees_upper_95": upper}
     for name, values in (("translation", nees_tr), ("rotation", nees_rot)):
         anees = np.asarray(values[:n * w], dtype=float).reshape(n, w).mean(axis=1)

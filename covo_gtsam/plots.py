@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .chi2 import chi2_pdf, chi2_quantile
+from .chi2 import anees_band, chi2_pdf, chi2_quantile
 from .geometry import invert_pose
 
 
@@ -89,14 +89,14 @@ SIMULATION_PLOTS = ("nees.png", "errors_bounds.png")
 
 def anees_bars(ax, bins: list[dict], title: str, unit: str, dof: int = 3) -> None:
     """ANEES t / r per bin of ``nees_breakdown`` (bins without pairs left out), each bin's 95 %
-    band of a consistent covariance over its pair count (``chi2_quantile(p, dof n) / n``)."""
+    band of a consistent covariance over its pair count (:func:`~covo_gtsam.chi2.anees_band`)."""
     bins = [b for b in bins if b["pairs"]]
     x = np.arange(len(bins))
     for key, colour, shift in (("anees_translation", "tab:blue", -0.2), ("anees_rotation", "tab:orange", 0.2)):
         ax.bar(x + shift, [b[key] for b in bins], width=0.4, color=colour, label=key.split("_")[1])
     for i, b in enumerate(bins):
         n = b["pairs"]
-        lo, hi = chi2_quantile(0.025, dof * n) / n, chi2_quantile(0.975, dof * n) / n
+        lo, hi = anees_band(n, dof)
         ax.plot([i - 0.45, i + 0.45], [lo, lo], "k:", lw=0.8)
         ax.plot([i - 0.45, i + 0.45], [hi, hi], "k:", lw=0.8)
     ax.axhline(dof, color="k", lw=0.8)

@@ -41,3 +41,17 @@ def test_modules_use_the_named_constants():
 def test_quantile_function_gives_the_reported_bound():
     # metrics.json's chi2_3_975 is this value
     assert c.chi2_quantile(0.975, 3) == c.CHI2_3_975
+
+
+@pytest.mark.parametrize("pairs", [1, 8, 60, 1000])
+def test_anees_band_is_scipys_chi_square_band_over_the_pairs(pairs):
+    from scipy import stats
+
+    from covo_gtsam.chi2 import anees_band
+    from covo_gtsam.errors import InputError
+
+    lo, hi = anees_band(pairs)
+    assert lo == pytest.approx(stats.chi2.ppf(0.025, 3 * pairs) / pairs, rel=1e-9)
+    assert hi == pytest.approx(stats.chi2.ppf(0.975, 3 * pairs) / pairs, rel=1e-9)
+    with pytest.raises(InputError):
+        anees_band(0)
