@@ -312,7 +312,7 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
         "the ground truth's own samples are not at hand (only its poses at the frames, as from a bag's tf chain "
         "without exactly one moving link)")
     # what the reference's own jitter adds to each error measured against it (pair or chain ends)
-    jitter = None if ev.reference is None else reference_covariances(samples, ev.reference)
+    jitter = None if ev.reference is None else reference_covariances(samples, np.deg2rad(ev.reference["rotation_deg"]))
     ev.nees_with_reference_jitter = jitter is not None
     pairs = pairs_with_truth(steps, gt)
     T_est, T_true, covs = relative_ground_truth(pairs, gt)
@@ -370,15 +370,16 @@ def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:
     return {"rotation_deg": rot.tolist(), "translation_mm": trans.tolist(), "samples": out["samples"]}
 
 
-def reference_covariances(samples: tuple[np.ndarray, np.ndarray], reference: dict | None = None):
+def reference_covariances(samples: tuple[np.ndarray, np.ndarray], rotation_sd: np.ndarray | None = None):
     """``jitter(ref_stamps, cur_stamps)``: what the ground truth's own rotation jitter adds (N, 6, 6)
     to the error of each pair of frames at those stamps (N,) measured against it
     (:func:`~covo_gtsam.reference_noise.pair_jitter_covariances`), from its samples ``(stamps,
-    poses)`` and their :func:`reference_statistics` (computed if not given; :class:`InputError` when
-    they do not allow it)."""
-    reference = reference_statistics(samples) if reference is None else reference
+    poses)`` (stamps that are not numbers left out) and its s.d. per sample and axis (rad; if not
+    given, :func:`reference_statistics`'s, :class:`InputError` when the samples do not allow it)."""
+    if rotation_sd is None:
+        rotation_sd = np.deg2rad(reference_statistics(samples)["rotation_deg"])
     stamps = np.asarray(samples[0], dtype=float)
-    return partial(pair_jitter_covariances, stamps[np.isfinite(stamps)], np.deg2rad(reference["rotation_deg"]))
+    return partial(pair_jitter_covariances, stamps[np.isfinite(stamps)], rotation_sd)
 
 
 #: Keys of :func:`consistency_metrics` (None when it cannot be computed).

@@ -399,7 +399,7 @@ def calibrate_sequence(
         InputError: fewer than 10 usable pairs.
     """
     from .calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS, fit_sensor_terms
-    from .evaluation import ground_truth_lookup, relative_ground_truth
+    from .evaluation import ground_truth_lookup, reference_covariances, relative_ground_truth
     from .metrics import relative_pose_tangent_errors
 
     if seq.groundtruth is None:
@@ -424,10 +424,8 @@ def calibrate_sequence(
                          f"{len(with_truth)} of them with ground truth)")
     fixed = prior_covariances(consecutive, priors)
     if reference_sd is not None:
-        from .reference_noise import pair_jitter_covariances
-
-        jitter = pair_jitter_covariances(seq.gt_samples[0], reference_sd, [s.ref_timestamp for s in consecutive],
-                                         [s.timestamp for s in consecutive])
+        jitter = reference_covariances(seq.gt_samples, reference_sd)([s.ref_timestamp for s in consecutive],
+                                                                      [s.timestamp for s in consecutive])
         fixed = jitter if fixed is None else fixed + jitter
     return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs, fit_correlation_factor,
                             bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),
