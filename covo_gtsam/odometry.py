@@ -64,6 +64,14 @@ class _TwistSpan(NamedTuple):
     intervals: int
 
 
+def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
+    """The camera's twist at ``step``'s frame from its own pair (rad/s, m/s), for the next pair: its
+    ``velocity``, or for a pair the integrity check flagged (whose twist is likely wrong, by metres
+    per second after a bad depth image) the twist its frame was moved to its stamp with, its
+    reference's (None without one)."""
+    return step.stamp_twist if step.flagged else step.velocity
+
+
 def _positive_definite(C: np.ndarray) -> bool:
     """True for a finite, symmetric positive-definite covariance whose inverse is finite too."""
     if not np.all(np.isfinite(C)):
@@ -361,11 +369,12 @@ class VisualOdometry(DeprecatedStepAccess):
         frame's from its motion since the last posed frame and the keyframe's own (its pair's), not
         the mean over the whole pair."""
         since = self._since_last(T, ref_step, timestamp)
+        own = _trusted_velocity(ref_step)
         if since is None:
-            return frame_twists(T, dt, ref_step.velocity)
+            return frame_twists(T, dt, own)
         _, T_last_cur, dt_last = since
         twist_cur = gtsam.Pose3.Logmap(T_last_cur) / dt_last
-        twist_ref = twist_cur if ref_step.velocity is None else np.asarray(ref_step.velocity, dtype=float)
+        twist_ref = twist_cur if own is None else np.asarray(own, dtype=float)
         return twist_ref, twist_cur
 
     def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs: PointPairs, dt: float,
@@ -532,7 +541,7 @@ class VisualOdometry(DeprecatedStepAccess):
             # previous pair, by half of the twist itself (both frames)
             rows_cur = row_time_offsets(pairs.uv_cur[:, 1], self.camera.height, self.config.sensor.rolling_shutter_s)
             B = rolling_shutter_basis(G_cur, X_cur, rows_cur)
-            if ref_step.velocity is not None:
+            if _trusted_velocity(ref_step) is not None:
                 bases["rolling_shutter"] = 0.25 * B @ change_cov @ B.T
             else:
                 rows_ref = row_time_offsets(pairs.uv_ref[:, 1], self.camera.height,

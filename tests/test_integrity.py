@@ -139,8 +139,9 @@ def test_bad_depth_images_on_real_frames_leave_with_covariances_that_cover_them(
     depth image delivered with the wrong colour image; translation errors of about 0.17 m): no
     pair with such a frame leaves with a 6-dof NEES above 100 under its reported covariance, most
     are flagged, and at most 2 % of the other pairs are. The pairs that start at the frame after a
-    bad one stay within three times the other pairs' translation ANEES (15.4 against 2.6 when a
-    flagged pair's twist moved its end to the stamp)."""
+    bad one stay within 1.4 times the other pairs' translation ANEES: about 1.0 when the next pair
+    takes its reference frame's twist from a trusted pair, 1.7 when it took the flagged pair's
+    (and 5.9 when a flagged pair's twist also moved its end to the stamp)."""
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
     from covo_gtsam.metrics import nees, relative_pose_tangent_errors
@@ -171,4 +172,5 @@ def test_bad_depth_images_on_real_frames_leave_with_covariances_that_cover_them(
     ref = np.array([index[s.ref_timestamp] for s in kept])
     after = np.isin(ref - 1, list(bad)) & ~is_bad
     nt = nees(err[:, 3:], covs[:, 3:, 3:])
-    assert after.sum() >= 15 and nt[after].mean() < 3 * nt[~is_bad & ~after].mean()
+    assert after.sum() >= 15
+    assert nt[after].mean() < 1.4 * nt[~is_bad & ~after].mean(), (nt[after].mean(), nt[~is_bad & ~after].mean())
