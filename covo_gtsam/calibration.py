@@ -36,7 +36,14 @@ physical size (:data:`ERROR_TERMS`):
   clock: in full for a frame the frame clock has not placed yet (the first frames of a run), and
   ``1/n`` of its variance for a frame placed by a clock fitted to ``n`` stamps (the uncertainty of
   the fitted phase); a prior, not fitted (1.9 ms is the scatter of the shared fr1 colour stamps
-  around a regular clock).
+  around a regular clock);
+* ``span`` (dimensionless): a translation error that persists from interval to interval, ``c``
+  times the camera's recent translation per interval ``d`` per axis, so a pair ``k`` intervals
+  long gets ``c^2 d^2 (k^2 - 1)`` beyond what its first interval has (:func:`span_basis`); zero
+  for consecutive pairs, whose other terms hold the first interval's share. ``d`` comes from the
+  frame before the pair's current one, not from the pair itself (whose own error would enter its
+  covariance). Fitted on pairs over two and three intervals with the other terms held
+  (:func:`fit_span_factor`).
 
 :func:`fit_sensor_terms` estimates ``kappa, s_r, s_t`` from the errors of consecutive pairs
 against ground truth, by maximising the Gaussian likelihood; it needs SciPy
@@ -53,13 +60,15 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance",
-           "twist_change", "latency_basis", "TwistChanges", "sensor_covariance", "log_likelihood", "fit_sensor_terms"]
+           "twist_change", "latency_basis", "TwistChanges", "span_basis", "sensor_covariance", "log_likelihood",
+           "fit_sensor_terms", "fit_span_factor"]
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
                "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s",
-               "latency": "latency_sigma_s"}
-#: The terms of the default model (``stamp_jitter`` is a prior; docs/cross_validation.md).
+               "latency": "latency_sigma_s", "span": "span_factor"}
+#: The terms of the default model fitted on consecutive pairs (``stamp_jitter`` is a prior and ``span``
+#: needs longer pairs; docs/cross_validation.md).
 DEFAULT_TERMS = ("timing", "rolling_shutter", "latency", "depth_scale", "depth_time")
 #: Terms held at their configured value (a prior) when the others are fitted.
 PRIOR_TERMS = ("stamp_jitter",)
@@ -69,8 +78,9 @@ PRIOR_TERMS = ("stamp_jitter",)
 class SensorTerms:
     """Fitted sensor terms: ``correlation_factor`` (kappa), per-interval standard deviations
     ``frame_sigma_rot_deg`` (degrees per axis) and ``frame_sigma_trans_m`` (metres per axis), the
-    mean log-likelihood per pair at the fit, the number of pairs it used, and ``sigmas``: the
-    fitted sigma of each frame-level term (names of :data:`ERROR_TERMS`)."""
+    mean log-likelihood per pair at the fit, the number of pairs it used, ``sigmas``: the fitted
+    sigma of each frame-level term (names of :data:`ERROR_TERMS`), and ``span_pairs``: the pairs
+    over more than one interval the ``span`` term was fitted on (0: not fitted)."""
 
     correlation_factor: float
     frame_sigma_rot_deg: float
@@ -78,6 +88,7 @@ class SensorTerms:
     log_likelihood: float
     pairs: int
     sigmas: dict = field(default_factory=dict)
+    span_pairs: int = 0
 
     def config_values(self) -> dict:
         """The fit as :class:`~covo_gtsam.config.SensorConfig` settings (the ``sensor`` group)."""
@@ -109,6 +120,17 @@ def timing_covariance(twists: np.ndarray, timing_sigma_s: float = 1.0) -> np.nda
     default ``tau = 1`` it is the term's basis ``B``."""
     xi = np.asarray(twists, dtype=float)
     return timing_sigma_s**2 * np.einsum("...fi,...fj->...ij", xi, xi)
+
+
+def span_basis(step_m: np.ndarray | float, intervals: np.ndarray | int) -> np.ndarray:
+    """Basis(es) (..., 6, 6) of the ``span`` term: ``d^2 (k^2 - 1)`` on each translation axis of a
+    pair ``k`` (...,) intervals long, ``d`` (..., m) the camera's recent translation per interval;
+    zero for ``k = 1``."""
+    d = np.asarray(step_m, dtype=float)
+    k = np.asarray(intervals, dtype=float)
+    out = np.zeros(np.broadcast_shapes(d.shape, k.shape) + (6, 6))
+    out[..., 3:, 3:] = (d**2 * (k**2 - 1.0))[..., None, None] * np.eye(3)
+    return out
 
 
 def twist_change(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray) -> np.ndarray:
@@ -366,3 +388,31 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
     kappa, s_r, s_t, sig = params(best.x)
     return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors),
                        {**{k: float(v) for k, v in sig.items()}, **{k: 0.0 for k in dead}})
+
+
+def fit_span_factor(errors: np.ndarray, covs: np.ndarray, span_bases: np.ndarray) -> float:
+    """Maximum-likelihood sigma of the ``span`` term (:func:`span_basis`) from pairs over more than
+    one interval, the other terms held: ``errors`` (N, 6) against ground truth (tangent
+    ``[omega, v]``), ``covs`` (N, 6, 6) the covariances without the span term, ``span_bases``
+    (N, 6, 6). Needs at least 10 pairs whose basis is not zero; SciPy."""
+    errors = np.asarray(errors, dtype=float)
+    covs = np.asarray(covs, dtype=float)
+    span_bases = np.asarray(span_bases, dtype=float)
+    if errors.ndim != 2 or errors.shape[1] != 6 or covs.shape != errors.shape + (6,) or span_bases.shape != covs.shape:
+        raise InputError(f"need errors (N, 6), covariances and bases (N, 6, 6), got {errors.shape}, {covs.shape} "
+                         f"and {span_bases.shape}")
+    if not (np.all(np.isfinite(errors)) and np.all(np.isfinite(covs)) and np.all(np.isfinite(span_bases))):
+        raise InputError("errors, covariances and bases must be finite")
+    used = np.any(span_bases != 0, axis=(1, 2))
+    if used.sum() < 10:
+        raise InputError(f"need at least 10 pairs over more than one interval with a recent translation to fit the "
+                         f"span term, got {int(used.sum())}")
+    try:
+        from scipy.optimize import minimize_scalar
+    except ImportError as exc:  # pragma: no cover - depends on the installation
+        raise ImportError('fitting the sensor terms needs SciPy: pip install "covo-gtsam[calibrate]"') from exc
+    e, C, B = errors[used], covs[used], span_bases[used]
+    res = minimize_scalar(lambda x: -log_likelihood(e, C + np.exp(2 * x) * B), bounds=(np.log(1e-4), np.log(100.0)),
+                          method="bounded", options={"xatol": 1e-6})
+    # a factor at the lower bound means no growth beyond the other terms
+    return 0.0 if res.x <= np.log(1e-4) + 1e-3 else float(np.exp(res.x))

@@ -274,7 +274,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     with _lock_outputs(out, ["calibration.json"]):
         fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
                                          progress=not args.quiet, reference_sd=reference_sd)
-        summary = {"sequence": seq.name, "pairs": fit.pairs, **fit.config_values(),
+        summary = {"sequence": seq.name, "pairs": fit.pairs, "span_pairs": fit.span_pairs, **fit.config_values(),
                    "log_likelihood_per_pair": fit.log_likelihood,
                    "per_point_model_anees": [result.metrics.get("anees_translation"),
                                              result.metrics.get("anees_rotation")],
@@ -291,6 +291,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print("[sensor]")
         for name, value in fit.config_values().items():
             print(f"{name} = {value:.3g}")
+        if fit.span_pairs < 10:
+            print(f"(span_factor is the configured value: the runs over every 2nd and 3rd frame gave "
+                  f"{fit.span_pairs} pairs with ground truth to fit it on, fewer than 10)")
+        else:
+            print(f"(span_factor fitted on {fit.span_pairs} pairs over 2 and 3 frame intervals)")
         print(f"results in {out}")
     return 0
 

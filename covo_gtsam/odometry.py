@@ -15,7 +15,7 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
-from .calibration import TwistChanges, timing_covariance
+from .calibration import TwistChanges, span_basis, timing_covariance
 from .camera import Camera
 from .choices import MotionModel
 from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
@@ -517,6 +517,10 @@ class VisualOdometry(DeprecatedStepAccess):
         G_ref, G_cur = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         b_ref, b_cur = depth_scale_basis(G_ref, X_ref), depth_scale_basis(G_cur, X_cur)
         bases = {"depth_scale": np.outer(b_ref, b_ref) + np.outer(b_cur, b_cur)}
+        # the camera's recent translation per interval, from the last posed frame (not this pair)
+        recent = _trusted_velocity(self._last.step)
+        step_m = 0.0 if recent is None else float(np.linalg.norm(recent[3:])) * self.config.sensor.frame_interval_s
+        bases["span"] = span_basis(step_m, self.config.sensor.frame_intervals(dt))
         if twists is None:
             return bases  # no motion: no timing terms
         twist_ref, velocity = twists

@@ -37,7 +37,7 @@ import os
 import threading
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -378,6 +378,7 @@ def calibrate_sequence(
     terms=None,
     fit_correlation_factor: bool = False,
     reference_sd: np.ndarray | None = None,
+    fit_span: bool = True,
 ):
     """Fit the sensor terms (:func:`covo_gtsam.calibration.fit_sensor_terms`) on a sequence with
     ground truth.
@@ -392,19 +393,24 @@ def calibrate_sequence(
     held at ``config``'s values. With ``reference_sd`` (rad, per axis: the ground truth's own rotation
     jitter per sample, :func:`~covo_gtsam.reference_noise.reference_jitter`) that jitter is held as a
     known term too (:func:`~covo_gtsam.reference_noise.pair_jitter_covariances`), so the fitted terms
-    describe the camera without its reference. Returns ``(SensorTerms, RunResult)``.
+    describe the camera without its reference. With ``fit_span``, the ``span`` term (zero for
+    consecutive pairs) is then fitted on the pairs of runs over every 2nd and 3rd frame
+    (:func:`strided_steps`) with the other terms held (:func:`~covo_gtsam.calibration.fit_span_factor`);
+    with fewer than 10 such pairs it keeps ``config``'s value (``SensorTerms.span_pairs`` says how
+    many it had). Returns ``(SensorTerms, RunResult)``.
 
     Raises:
         DatasetError: the sequence has no ground truth.
         InputError: fewer than 10 usable pairs.
     """
-    from .calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS, fit_sensor_terms
+    from .calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS, fit_sensor_terms, fit_span_factor
     from .evaluation import ground_truth_lookup, reference_covariances, relative_ground_truth
     from .metrics import relative_pose_tangent_errors
 
     if seq.groundtruth is None:
         raise DatasetError(f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
     config = config or OdometryConfig()
+    span_prior = config.sensor.span_factor
     priors = {k: getattr(config.sensor, ERROR_TERMS[k]) for k in PRIOR_TERMS}
     no_terms = {name: 0.0 for name in ERROR_TERMS.values()}
     config = config.replace(sensor={"correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0,
@@ -427,9 +433,62 @@ def calibrate_sequence(
         jitter = reference_covariances(seq.gt_samples, reference_sd)([s.ref_timestamp for s in consecutive],
                                                                       [s.timestamp for s in consecutive])
         fixed = jitter if fixed is None else fixed + jitter
-    return fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs, fit_correlation_factor,
-                            bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),
-                            fixed=fixed), result
+    fit = fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs, fit_correlation_factor,
+                           bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms), fixed=fixed)
+    if not fit_span:
+        return fit, result
+    longer = [s for s in strided_steps(seq, config, max_frames, progress=progress)
+              if s.has_relative_pose and s.velocity is not None and not s.flagged and s.clock_samples
+              and config.frame_intervals(s.timestamp - s.ref_timestamp) > 1
+              and s.ref_timestamp in lookup and s.timestamp in lookup]
+    span = span_prior
+    if longer:
+        T_est, T_true, point_covs = relative_ground_truth(longer, lookup)
+        bases = stacked_bases(longer, tuple(fit.sigmas) + ("span",))
+        k = np.array([config.frame_intervals(s.timestamp - s.ref_timestamp) for s in longer])
+        held = fit.covariances(point_covs, {n: B for n, B in bases.items() if n != "span"}, k)
+        more = prior_covariances(longer, priors)
+        held = held if more is None else held + more
+        if reference_sd is not None:
+            held = held + reference_covariances(seq.gt_samples, reference_sd)([s.ref_timestamp for s in longer],
+                                                                                [s.timestamp for s in longer])
+        try:
+            span = fit_span_factor(relative_pose_tangent_errors(T_est, T_true), held, bases["span"])
+        except InputError:
+            pass  # too few such pairs: the configured value stays
+    return replace(fit, sigmas={**fit.sigmas, "span": span}, span_pairs=len(longer)), result
+
+
+#: frame strides whose pairs (two and three intervals long) fit the span term
+SPAN_STRIDES = (2, 3)
+
+
+def strided_steps(seq, config: OdometryConfig, max_frames: int | None = None, strides: Sequence[int] = SPAN_STRIDES,
+                  progress: bool = False) -> list[OdometryStep]:
+    """The steps of runs of ``config`` over every ``s``-th frame of ``seq`` for each ``s`` in
+    ``strides``, each phase a run of its own (pairs ``s`` frame intervals long, as from a camera that
+    drops frames), all from one pass over the first ``max_frames`` frames; error bases kept."""
+    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+    runs = {(s, p): VisualOdometry(seq.camera, config) for s in strides for p in range(s)}
+    any_vo = next(iter(runs.values()))
+    load = _frame_loader(seq, n, config.sensor.depth_scale, any_vo.camera)
+    stamps = getattr(seq, "depth_timestamps", None)
+    steps = []
+    frames = range(n)
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(frames, desc=f"{seq.name}, every {' and '.join(map(str, strides))}", unit="frame",
+                      dynamic_ncols=True)
+    for i in frames:
+        t = float(seq.timestamps[i])
+        offset = 0.0 if stamps is None else float(stamps[i] - t)
+        for s in strides:
+            vo = runs[(s, i % s)]
+            frame = _load_frame(vo, load, i, offset) if s == strides[0] else frame
+            steps.append(vo.mark_lost(t, str(frame)) if isinstance(frame, CovoError)
+                         else vo.register_frame(frame, timestamp=t))
+    return steps
 
 
 def calibration_pairs(steps, lookup: dict | None, config: OdometryConfig, require_clock: bool = True

@@ -367,3 +367,42 @@ def test_fit_reaches_the_maximum_another_optimiser_finds():
     assert -cost(x) == pytest.approx(fit.log_likelihood, abs=1e-9)
     polished = minimize(cost, x, method="Powell", options={"xtol": 1e-8, "ftol": 1e-12})
     assert -polished.fun - fit.log_likelihood < 1e-5
+
+
+def test_span_basis_is_the_growth_of_a_persisting_per_interval_translation_error():
+    """Monte Carlo of the span term's meaning: a translation error u (s.d. d per axis) that
+    persists over a pair's k intervals adds up to k u; the basis is what k intervals have beyond
+    the first, Cov(k u) - Cov(u) = d^2 (k^2 - 1), zero for consecutive pairs, translation only."""
+    from covo_gtsam.calibration import span_basis
+
+    rng = np.random.default_rng(7)
+    d = 0.003
+    u = rng.normal(scale=d, size=(200_000, 3))
+    for k in (1, 2, 3, 7):
+        B = span_basis(d, k)
+        extra = np.cov((k * u).T) - np.cov(u.T)
+        np.testing.assert_allclose(B[3:, 3:], extra, atol=0.02 * d**2 * k**2)
+        assert not np.any(B[:3]) and not np.any(B[:, :3])
+    assert not np.any(span_basis(d, 1))
+    batch = span_basis(np.array([0.001, 0.002]), np.array([2, 3]))
+    np.testing.assert_allclose(batch[1], span_basis(0.002, 3))
+
+
+def test_span_factor_fit_recovers_the_factor_errors_were_drawn_with():
+    """Errors drawn from C + c^2 B (pairs over 2-5 intervals, each with its recent translation
+    per interval) give back c; with c = 0 the fit says 0 or a small factor."""
+    from covo_gtsam.calibration import fit_span_factor, span_basis
+
+    rng = np.random.default_rng(3)
+    n = 1500
+    C = _random_spd(rng, n) * rng.uniform(0.2, 3.0, size=(n, 1, 1)) * 0.01
+    B = span_basis(rng.uniform(0.001, 0.02, n), rng.integers(2, 6, n))
+    for c in (0.2, 0.8):
+        e = np.einsum("nij,nj->ni", np.linalg.cholesky(C + c**2 * B), rng.normal(size=(n, 6)))
+        assert fit_span_factor(e, C, B) == pytest.approx(c, rel=0.1)
+    e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=(n, 6)))
+    assert fit_span_factor(e, C, B) < 0.05
+    with pytest.raises(InputError, match="at least 10 pairs over more than one interval"):
+        fit_span_factor(e[:20], C[:20], span_basis(0.01, np.ones(20)))
+    with pytest.raises(InputError, match="finite"):
+        fit_span_factor(np.full_like(e, np.nan), C, B)

@@ -273,3 +273,34 @@ def test_keyframe_pairs_feed_and_get_the_latency_term(sample_dir):
         if step.has_pose:
             last = step
     assert len(with_basis) >= 10 and all(with_basis)
+
+
+def test_span_basis_of_a_pair_comes_from_the_frame_before_it(sample_dir):
+    """A pair over k > 1 intervals gets the span basis ``d^2 (k^2 - 1)`` per translation axis with
+    ``d`` the translation per interval of the last posed frame's own pair, not of the pair itself
+    (whose error would then enter its own covariance): runs sharing frames 0-2 and then seeing frame
+    4 or 5 take the same ``d``; consecutive pairs have none; the reported covariance adds
+    ``span_factor^2`` times it."""
+    from covo_gtsam.calibration import span_basis
+    from covo_gtsam.datasets.tum import TumSequence
+
+    seq = TumSequence(sample_dir)
+    cfg = OdometryConfig().replace(sensor={"frame_clock": False})  # no restamping: the bases as built
+    bases = {}
+    for last in (4, 5):
+        vo = VisualOdometry(seq.camera, cfg)
+        steps = [vo.register_frame(*seq.load(i), seq.timestamps[i]) for i in (0, 1, 2, last)]
+        assert [s.status for s in steps] == ["first", "tracked", "tracked", "tracked"]
+        assert not np.any(steps[1].error_bases["span"]) and not np.any(steps[2].error_bases["span"])
+        d = np.linalg.norm(steps[2].velocity[3:]) * cfg.sensor.frame_interval_s
+        k = cfg.frame_intervals(steps[3].timestamp - steps[3].ref_timestamp)
+        assert k == last - 2 and 0.0005 < d < 0.05
+        np.testing.assert_allclose(steps[3].error_bases["span"], span_basis(d, k), rtol=1e-12)
+        own = np.linalg.norm(steps[3].velocity[3:]) * cfg.sensor.frame_interval_s
+        assert abs(own - d) > 1e-6  # the pair's own translation per interval would have given another basis
+        without = cfg.replace(sensor={"span_factor": 0.0}).sensor.sensor_covariance(
+            steps[3].result.covariance, steps[3].timestamp - steps[3].ref_timestamp, steps[3].error_bases)
+        np.testing.assert_allclose(steps[3].covariance - without, cfg.sensor.span_factor**2 * span_basis(d, k),
+                                   rtol=1e-9, atol=1e-15)
+        bases[last] = steps[3].error_bases["span"] / (k * k - 1)
+    np.testing.assert_allclose(bases[4], bases[5], rtol=1e-12)
