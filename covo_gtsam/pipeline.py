@@ -483,9 +483,9 @@ def strided_steps(seq, config: OdometryConfig, max_frames: int | None = None, st
     for i in frames:
         t = float(seq.timestamps[i])
         offset = 0.0 if stamps is None else float(stamps[i] - t)
+        frame = _load_frame(any_vo, load, i, offset)  # the runs share the configuration: one decoding
         for s in strides:
             vo = runs[(s, i % s)]
-            frame = _load_frame(vo, load, i, offset) if s == strides[0] else frame
             steps.append(vo.mark_lost(t, str(frame)) if isinstance(frame, CovoError)
                          else vo.register_frame(frame, timestamp=t))
     return steps
