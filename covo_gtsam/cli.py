@@ -293,7 +293,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             print(f"{name} = {value:.3g}")
         if fit.span_pairs < 10:
             print(f"(span_factor is the configured value: the runs over every 2nd and 3rd frame gave "
-                  f"{fit.span_pairs} pairs with ground truth to fit it on, fewer than 10)")
+                  f"{fit.span_pairs} usable pairs to fit it on, fewer than 10: pairs with ground truth at both "
+                  "frames, placed by the frame clock, not flagged, after a frame with a velocity)")
         else:
             print(f"(span_factor fitted on {fit.span_pairs} pairs over 2 and 3 frame intervals)")
         print(f"results in {out}")

@@ -241,17 +241,20 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
         help="fit the sensor terms of the covariance on a sequence with ground truth",
         description="Fit the sensor terms of the reported covariance (correlation_factor, frame_sigma_rot_deg, "
         "frame_sigma_trans_m and the frame-level terms timing_sigma_s, rolling_shutter_factor, latency_sigma_s, "
-        "depth_scale_sigma, depth_time_factor; see covo_gtsam.calibration) by maximum likelihood on the consecutive frame pairs "
-        "of a sequence with ground truth, for a sensor other than the Kinect v1 the defaults belong to. Runs "
-        "the odometry with the per-point model alone into OUT/per_point_run, writes OUT/calibration.json and "
-        "prints the configuration lines. Needs SciPy.",
+        "depth_scale_sigma, depth_time_factor; see covo_gtsam.calibration) by maximum likelihood on the consecutive "
+        "frame pairs of a sequence with ground truth, for a sensor other than the Kinect v1 the defaults belong to; "
+        "then span_factor (pairs over more than one frame interval) on the pairs of runs over every 2nd and 3rd "
+        "frame, the other terms held (it keeps the configured value with fewer than 10 such pairs, about 50 "
+        "frames). Runs the odometry with the per-point model alone into OUT/per_point_run, writes "
+        "OUT/calibration.json and prints the configuration lines. Needs SciPy.",
     )
     _sequence_arguments(cal, "TUM RGB-D sequence folder with groundtruth.txt")
     cal.add_argument("--max-frames", type=_int_in(11), metavar="N",
                      help="only the first N frames (at least 11, and about 30 with the frame clock on, which "
                           "places the stamps from the 20th frame on; default: all)")
     cal.add_argument("--config", metavar="FILE",
-                     help="TOML or JSON settings for the run; its sensor terms are ignored (see README)")
+                     help="TOML or JSON settings for the run; its sensor terms are ignored, except span_factor "
+                          "when too few pairs fit it (see README)")
     cal.add_argument("--jitter-in-terms", action="store_true",
                      help="let the fitted terms take in the ground truth's own rotation jitter too (default: that "
                      "jitter, measured from all its samples as reference_jitter in metrics.json, is held as a known "

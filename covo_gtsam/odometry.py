@@ -68,8 +68,10 @@ def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
     """The camera's twist at ``step``'s frame from its own pair (rad/s, m/s), for the next pair: its
     ``velocity``, or for a pair the integrity check flagged (whose twist is likely wrong, by metres
     per second after a bad depth image) the twist its frame was moved to its stamp with, its
-    reference's (None without one)."""
-    return step.stamp_twist if step.flagged else step.velocity
+    reference's (None without one: its stamp then took its own twist, which is not passed on)."""
+    if not step.flagged:
+        return step.velocity
+    return None if step.stamp_twist is step.velocity else step.stamp_twist
 
 
 def _positive_definite(C: np.ndarray) -> bool:
@@ -336,10 +338,11 @@ class VisualOdometry(DeprecatedStepAccess):
     def _since_last(self, T: gtsam.Pose3, ref_step: OdometryStep, timestamp: float
                     ) -> tuple[OdometryStep, gtsam.Pose3, float] | None:
         """Against an older keyframe: the last posed frame's step, the motion ``T_last,cur`` since it
-        (``T`` is ``T_ref,cur``) and the capture interval (s); None against the last posed frame (or
-        without an interval since it)."""
+        (``T`` is ``T_ref,cur``) and the capture interval (s); None against the last posed frame, or
+        without an interval since it, or when the integrity check flagged the last frame's pair (its
+        pose is likely off, so the motion since it would be too)."""
         last = self._last.step if self._last is not None else None
-        if last is None or last is ref_step or last.timestamp <= ref_step.timestamp:
+        if last is None or last is ref_step or last.timestamp <= ref_step.timestamp or last.flagged:
             return None
         dt_last = self._capture_interval(last, timestamp)[0]
         if not dt_last > 0:

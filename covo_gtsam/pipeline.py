@@ -395,9 +395,10 @@ def calibrate_sequence(
     known term too (:func:`~covo_gtsam.reference_noise.pair_jitter_covariances`), so the fitted terms
     describe the camera without its reference. With ``fit_span``, the ``span`` term (zero for
     consecutive pairs) is then fitted on the pairs of runs over every 2nd and 3rd frame
-    (:func:`strided_steps`) with the other terms held (:func:`~covo_gtsam.calibration.fit_span_factor`);
-    with fewer than 10 such pairs it keeps ``config``'s value (``SensorTerms.span_pairs`` says how
-    many it had). Returns ``(SensorTerms, RunResult)``.
+    (:func:`strided_runs`) with the other terms held (:func:`~covo_gtsam.calibration.fit_span_factor`);
+    with fewer than 10 such pairs (:func:`calibration_pairs` with ``longer``, and a recent translation
+    to scale the term with) it keeps ``config``'s value (``SensorTerms.span_pairs`` says how many it
+    had). Returns ``(SensorTerms, RunResult)``.
 
     Raises:
         DatasetError: the sequence has no ground truth.
@@ -437,11 +438,9 @@ def calibrate_sequence(
                            bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms), fixed=fixed)
     if not fit_span:
         return fit, result
-    longer = [s for s in strided_steps(seq, config, max_frames, progress=progress)
-              if s.has_relative_pose and s.velocity is not None and not s.flagged and s.clock_samples
-              and config.frame_intervals(s.timestamp - s.ref_timestamp) > 1
-              and s.ref_timestamp in lookup and s.timestamp in lookup]
-    span = span_prior
+    longer = [s for run in strided_runs(seq, config, max_frames, progress=progress)
+              for s in calibration_pairs(run, lookup, config, longer=True)]
+    span, used = span_prior, 0
     if longer:
         T_est, T_true, point_covs = relative_ground_truth(longer, lookup)
         bases = stacked_bases(longer, tuple(fit.sigmas) + ("span",))
@@ -452,28 +451,27 @@ def calibrate_sequence(
         if reference_sd is not None:
             held = held + reference_covariances(seq.gt_samples, reference_sd)([s.ref_timestamp for s in longer],
                                                                                 [s.timestamp for s in longer])
-        try:
+        used = int(np.count_nonzero(np.any(bases["span"] != 0, axis=(1, 2))))
+        if used >= 10:  # else too few such pairs: the configured value stays
             span = fit_span_factor(relative_pose_tangent_errors(T_est, T_true), held, bases["span"])
-        except InputError:
-            pass  # too few such pairs: the configured value stays
-    return replace(fit, sigmas={**fit.sigmas, "span": span}, span_pairs=len(longer)), result
+    return replace(fit, sigmas={**fit.sigmas, "span": span}, span_pairs=used), result
 
 
 #: frame strides whose pairs (two and three intervals long) fit the span term
 SPAN_STRIDES = (2, 3)
 
 
-def strided_steps(seq, config: OdometryConfig, max_frames: int | None = None, strides: Sequence[int] = SPAN_STRIDES,
-                  progress: bool = False) -> list[OdometryStep]:
-    """The steps of runs of ``config`` over every ``s``-th frame of ``seq`` for each ``s`` in
+def strided_runs(seq, config: OdometryConfig, max_frames: int | None = None, strides: Sequence[int] = SPAN_STRIDES,
+                 progress: bool = False) -> list[list[OdometryStep]]:
+    """The steps of each run of ``config`` over every ``s``-th frame of ``seq`` for each ``s`` in
     ``strides``, each phase a run of its own (pairs ``s`` frame intervals long, as from a camera that
     drops frames), all from one pass over the first ``max_frames`` frames; error bases kept."""
     n = len(seq) if max_frames is None else min(len(seq), max_frames)
     runs = {(s, p): VisualOdometry(seq.camera, config) for s in strides for p in range(s)}
+    histories = {key: StepHistory(keep_error_bases=True) for key in runs}  # slim: no estimator results
     any_vo = next(iter(runs.values()))
     load = _frame_loader(seq, n, config.sensor.depth_scale, any_vo.camera)
     stamps = getattr(seq, "depth_timestamps", None)
-    steps = []
     frames = range(n)
     if progress:
         from tqdm import tqdm
@@ -486,21 +484,22 @@ def strided_steps(seq, config: OdometryConfig, max_frames: int | None = None, st
         frame = _load_frame(any_vo, load, i, offset)  # the runs share the configuration: one decoding
         for s in strides:
             vo = runs[(s, i % s)]
-            steps.append(vo.mark_lost(t, str(frame)) if isinstance(frame, CovoError)
-                         else vo.register_frame(frame, timestamp=t))
-    return steps
+            histories[(s, i % s)].add(vo.mark_lost(t, str(frame)) if isinstance(frame, CovoError)
+                                      else vo.register_frame(frame, timestamp=t))
+    return [h.steps for h in histories.values()]
 
 
-def calibration_pairs(steps, lookup: dict | None, config: OdometryConfig, require_clock: bool = True
-                      ) -> list[OdometryStep]:
-    """The steps a fit of the sensor terms uses: tracked consecutive pairs (one frame interval) with a
-    velocity and ground truth at both frames (``lookup``: stamp -> pose; None: ground truth not
-    required), not flagged by the integrity check, with ``require_clock`` both frames placed by the
-    frame clock (when it is on)."""
+def calibration_pairs(steps, lookup: dict | None, config: OdometryConfig, require_clock: bool = True,
+                      longer: bool = False) -> list[OdometryStep]:
+    """The steps a fit of the sensor terms uses: tracked consecutive pairs (one frame interval; with
+    ``longer``, pairs over more than one, which the span term is fitted on) with a velocity and
+    ground truth at both frames (``lookup``: stamp -> pose; None: ground truth not required), not
+    flagged by the integrity check, with ``require_clock`` both frames placed by the frame clock
+    (when it is on)."""
     clocked = {s.timestamp for s in steps if s.clock_samples or not config.sensor.frame_clock or not require_clock}
     return [s for s in steps if s.has_relative_pose and s.velocity is not None and not s.flagged
             and s.timestamp in clocked and s.ref_timestamp in clocked
-            and config.frame_intervals(s.timestamp - s.ref_timestamp) == 1
+            and (config.frame_intervals(s.timestamp - s.ref_timestamp) > 1) == longer
             and (lookup is None or (s.ref_timestamp in lookup and s.timestamp in lookup))]
 
 

@@ -303,7 +303,7 @@ def every_nth(seq: TumSequence, cfg: OdometryConfig, n: int) -> list:
     made once: the tables share the default model's)."""
     from covo_gtsam.odometry import VisualOdometry
 
-    key = (str(seq.path), cfg, n)
+    key = (str(seq.path), float(seq.timestamps[0]), len(seq.timestamps), cfg, n)  # a part of a sequence too
     if key in _RUNS:
         return _RUNS[key]
     steps = _RUNS[key] = []

@@ -174,3 +174,42 @@ def test_bad_depth_images_on_real_frames_leave_with_covariances_that_cover_them(
     nt = nees(err[:, 3:], covs[:, 3:, 3:])
     assert after.sum() >= 15
     assert nt[after].mean() < 1.4 * nt[~is_bad & ~after].mean(), (nt[after].mean(), nt[~is_bad & ~after].mean())
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_after_a_bad_depth_image_keyframe_mode_takes_no_twist_from_the_flagged_frame(fr1_rpy_dir):
+    """Keyframe mode, the same 18 depth images replaced by those 100 ms later: the pairs ending at
+    the frame after a bad one (neither frame bad) stay within 1.4 times the other pairs'
+    translation ANEES (2.8 times, 4.19 against 1.49, when a frame's twist was taken from its motion
+    since a flagged last frame). Most pairs with a bad frame are flagged; not all are covered (one
+    reaches a 6-dof NEES of 502 at quality 43, below the flag: README, known limits)."""
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
+    from covo_gtsam.metrics import nees, relative_pose_tangent_errors
+    from covo_gtsam.odometry import OdometryConfig, VisualOdometry
+
+    seq = TumSequence(fr1_rpy_dir)
+    lookup = ground_truth_lookup(seq)
+    bad = set(range(30, 237, 12))
+    vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(tracking={"keyframes": True}))
+    steps = []
+    for i in range(len(seq.timestamps)):
+        image, depth = seq.load(i)
+        if i in bad:
+            depth = seq.load(i + 3)[1]
+        steps.append(vo.register_frame(image, depth, seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i]))
+    kept = [s for s in steps if s.has_relative_pose and s.ref_timestamp in lookup and s.timestamp in lookup]
+    T_est, T_true, covs = relative_ground_truth(kept, lookup)
+    err = relative_pose_tangent_errors(T_est, T_true)
+    index = {t: i for i, t in enumerate(seq.timestamps)}
+    ref = np.array([index[s.ref_timestamp] for s in kept])
+    cur = np.array([index[s.timestamp] for s in kept])
+    is_bad = np.isin(ref, list(bad)) | np.isin(cur, list(bad))
+    after = np.isin(cur - 1, list(bad)) & ~is_bad
+    nt = nees(err[:, 3:], covs[:, 3:, 3:])
+    assert is_bad.sum() >= 15 and after.sum() >= 15
+    assert np.sqrt(np.mean(np.sum(err[is_bad, 3:] ** 2, axis=1))) > 0.05  # gross errors
+    flagged = np.array([s.flagged for s in kept])
+    assert flagged[is_bad].mean() >= 0.5 and flagged[~is_bad].mean() <= 0.02
+    assert nt[after].mean() < 1.4 * nt[~is_bad & ~after].mean(), (nt[after].mean(), nt[~is_bad & ~after].mean())

@@ -304,3 +304,19 @@ def test_span_basis_of_a_pair_comes_from_the_frame_before_it(sample_dir):
                                    rtol=1e-9, atol=1e-15)
         bases[last] = steps[3].error_bases["span"] / (k * k - 1)
     np.testing.assert_allclose(bases[4], bases[5], rtol=1e-12)
+
+
+def test_the_twist_passed_on_from_a_flagged_pair_is_never_its_own():
+    """The next pair takes a frame's twist from its own pair unless the integrity check flagged it:
+    then the twist the frame was moved to its stamp with (its reference's), and none when that was
+    the flagged pair's own (its reference had no twist, e.g. right after a restart)."""
+    import dataclasses
+
+    from covo_gtsam.odometry import _trusted_velocity
+    from covo_gtsam.steps import OdometryStep, StepStatus
+
+    own, reference = np.arange(6.0), np.ones(6)
+    step = OdometryStep(1.0, StepStatus.RELATIVE_POSE, velocity=own, stamp_twist=own)
+    assert _trusted_velocity(step) is own
+    assert _trusted_velocity(dataclasses.replace(step, flagged=True, stamp_twist=reference)) is reference
+    assert _trusted_velocity(dataclasses.replace(step, flagged=True)) is None
