@@ -132,6 +132,39 @@ def test_scale_normalises_typical_pairs_to_the_chi2_median():
     assert s.normalise(float("nan")) == float("inf")
 
 
+#: frames of fr1_rpy whose depth image the real-frame tests replace (every 12th from frame 30)
+BAD_DEPTH = set(range(30, 237, 12))
+
+
+def _with_bad_depth(fr1_rpy_dir, keyframes: bool) -> dict:
+    """fr1_rpy with the depth images of :data:`BAD_DEPTH` replaced by those of the frame 100 ms
+    later: for each pair with ground truth its error, NEES under the reported covariance, frame
+    indices, whether it is bad (either frame is) and whether it is flagged."""
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
+    from covo_gtsam.metrics import nees, relative_pose_tangent_errors
+    from covo_gtsam.odometry import OdometryConfig, VisualOdometry
+
+    seq = TumSequence(fr1_rpy_dir)
+    lookup = ground_truth_lookup(seq)
+    vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(tracking={"keyframes": keyframes}))
+    steps = []
+    for i in range(len(seq.timestamps)):
+        image, depth = seq.load(i)
+        if i in BAD_DEPTH:
+            depth = seq.load(i + 3)[1]
+        steps.append(vo.register_frame(image, depth, seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i]))
+    kept = [s for s in steps if s.has_relative_pose and s.ref_timestamp in lookup and s.timestamp in lookup]
+    T_est, T_true, covs = relative_ground_truth(kept, lookup)
+    err = relative_pose_tangent_errors(T_est, T_true)
+    index = {t: i for i, t in enumerate(seq.timestamps)}
+    ref, cur = (np.array([index[getattr(s, a)] for s in kept]) for a in ("ref_timestamp", "timestamp"))
+    bad = np.isin(ref, list(BAD_DEPTH)) | np.isin(cur, list(BAD_DEPTH))
+    return {"err": err, "bad": bad, "ref": ref, "cur": cur,
+            "flagged": np.array([s.flagged for s in kept]), "nees_t": nees(err[:, 3:], covs[:, 3:, 3:]),
+            "nees_6": np.einsum("ni,nij,nj->n", err, np.linalg.inv(covs), err)}
+
+
 @pytest.mark.slow
 @pytest.mark.realdata
 def test_bad_depth_images_on_real_frames_leave_with_covariances_that_cover_them(fr1_rpy_dir):
@@ -142,38 +175,16 @@ def test_bad_depth_images_on_real_frames_leave_with_covariances_that_cover_them(
     bad one stay within 1.4 times the other pairs' translation ANEES: about 1.0 when the next pair
     takes its reference frame's twist from a trusted pair, 1.7 when it took the flagged pair's
     (and 5.9 when a flagged pair's twist also moved its end to the stamp)."""
-    from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
-    from covo_gtsam.metrics import nees, relative_pose_tangent_errors
-    from covo_gtsam.odometry import VisualOdometry
-
-    seq = TumSequence(fr1_rpy_dir)
-    lookup = ground_truth_lookup(seq)
-    bad = set(range(30, 237, 12))
-    vo = VisualOdometry(seq.camera_name)
-    steps = []
-    for i in range(len(seq.timestamps)):
-        image, depth = seq.load(i)
-        if i in bad:
-            depth = seq.load(i + 3)[1]
-        steps.append(vo.register_frame(image, depth, seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i]))
-    kept = [s for s in steps if s.has_relative_pose and s.ref_timestamp in lookup and s.timestamp in lookup]
-    T_est, T_true, covs = relative_ground_truth(kept, lookup)
-    err = relative_pose_tangent_errors(T_est, T_true)
-    index = {t: i for i, t in enumerate(seq.timestamps)}
-    is_bad = np.array([index[s.ref_timestamp] in bad or index[s.timestamp] in bad for s in kept])
-    flagged = np.array([s.flagged for s in kept])
-    n6 = np.einsum("ni,nij,nj->n", err, np.linalg.inv(covs), err)
-    assert is_bad.sum() >= 30
-    assert np.sqrt(np.mean(np.sum(err[is_bad, 3:] ** 2, axis=1))) > 0.05  # gross errors
-    assert n6[is_bad].max() < 100
-    assert flagged[is_bad].mean() >= 0.75
-    assert flagged[~is_bad].mean() <= 0.02
-    ref = np.array([index[s.ref_timestamp] for s in kept])
-    after = np.isin(ref - 1, list(bad)) & ~is_bad
-    nt = nees(err[:, 3:], covs[:, 3:, 3:])
+    r = _with_bad_depth(fr1_rpy_dir, keyframes=False)
+    bad, nt = r["bad"], r["nees_t"]
+    after = np.isin(r["ref"] - 1, list(BAD_DEPTH)) & ~bad  # starting at the frame after a bad one
+    assert bad.sum() >= 30
+    assert np.sqrt(np.mean(np.sum(r["err"][bad, 3:] ** 2, axis=1))) > 0.05  # gross errors
+    assert r["nees_6"][bad].max() < 100
+    assert r["flagged"][bad].mean() >= 0.75
+    assert r["flagged"][~bad].mean() <= 0.02
     assert after.sum() >= 15
-    assert nt[after].mean() < 1.4 * nt[~is_bad & ~after].mean(), (nt[after].mean(), nt[~is_bad & ~after].mean())
+    assert nt[after].mean() < 1.4 * nt[~bad & ~after].mean(), (nt[after].mean(), nt[~bad & ~after].mean())
 
 
 @pytest.mark.slow
@@ -184,32 +195,10 @@ def test_after_a_bad_depth_image_keyframe_mode_takes_no_twist_from_the_flagged_f
     translation ANEES (2.8 times, 4.19 against 1.49, when a frame's twist was taken from its motion
     since a flagged last frame). Most pairs with a bad frame are flagged; not all are covered (one
     reaches a 6-dof NEES of 502 at quality 43, below the flag: README, known limits)."""
-    from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
-    from covo_gtsam.metrics import nees, relative_pose_tangent_errors
-    from covo_gtsam.odometry import OdometryConfig, VisualOdometry
-
-    seq = TumSequence(fr1_rpy_dir)
-    lookup = ground_truth_lookup(seq)
-    bad = set(range(30, 237, 12))
-    vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(tracking={"keyframes": True}))
-    steps = []
-    for i in range(len(seq.timestamps)):
-        image, depth = seq.load(i)
-        if i in bad:
-            depth = seq.load(i + 3)[1]
-        steps.append(vo.register_frame(image, depth, seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i]))
-    kept = [s for s in steps if s.has_relative_pose and s.ref_timestamp in lookup and s.timestamp in lookup]
-    T_est, T_true, covs = relative_ground_truth(kept, lookup)
-    err = relative_pose_tangent_errors(T_est, T_true)
-    index = {t: i for i, t in enumerate(seq.timestamps)}
-    ref = np.array([index[s.ref_timestamp] for s in kept])
-    cur = np.array([index[s.timestamp] for s in kept])
-    is_bad = np.isin(ref, list(bad)) | np.isin(cur, list(bad))
-    after = np.isin(cur - 1, list(bad)) & ~is_bad
-    nt = nees(err[:, 3:], covs[:, 3:, 3:])
-    assert is_bad.sum() >= 15 and after.sum() >= 15
-    assert np.sqrt(np.mean(np.sum(err[is_bad, 3:] ** 2, axis=1))) > 0.05  # gross errors
-    flagged = np.array([s.flagged for s in kept])
-    assert flagged[is_bad].mean() >= 0.5 and flagged[~is_bad].mean() <= 0.02
-    assert nt[after].mean() < 1.4 * nt[~is_bad & ~after].mean(), (nt[after].mean(), nt[~is_bad & ~after].mean())
+    r = _with_bad_depth(fr1_rpy_dir, keyframes=True)
+    bad, nt = r["bad"], r["nees_t"]
+    after = np.isin(r["cur"] - 1, list(BAD_DEPTH)) & ~bad  # ending at the frame after a bad one
+    assert bad.sum() >= 15 and after.sum() >= 15
+    assert np.sqrt(np.mean(np.sum(r["err"][bad, 3:] ** 2, axis=1))) > 0.05  # gross errors
+    assert r["flagged"][bad].mean() >= 0.5 and r["flagged"][~bad].mean() <= 0.02
+    assert nt[after].mean() < 1.4 * nt[~bad & ~after].mean(), (nt[after].mean(), nt[~bad & ~after].mean())
