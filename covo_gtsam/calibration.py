@@ -412,11 +412,9 @@ def fit_span_factor(errors: np.ndarray, covs: np.ndarray, span_bases: np.ndarray
     except ImportError as exc:  # pragma: no cover - depends on the installation
         raise ImportError('fitting the sensor terms needs SciPy: pip install "covo-gtsam[calibrate]"') from exc
     e, C, B = errors[used], covs[used], span_bases[used]
-    # the likelihood's slope in c^2 at 0: not rising, the pairs show no growth beyond the other terms
-    Ce = np.linalg.solve(C, e[..., None])[..., 0]
-    slope = np.mean(np.einsum("ni,nij,nj->n", Ce, B, Ce) - np.trace(np.linalg.solve(C, B), axis1=1, axis2=2))
-    if not slope > 0:
-        return 0.0
     res = minimize_scalar(lambda x: -log_likelihood(e, C + np.exp(2 * x) * B), bounds=(np.log(1e-4), np.log(100.0)),
                           method="bounded", options={"xatol": 1e-6})
+    # no factor the search found explains the pairs better than none: no growth beyond the other terms
+    if not -res.fun > log_likelihood(e, C):
+        return 0.0
     return float(np.exp(res.x))  # at most 100, the setting's largest value

@@ -464,7 +464,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if twists is not None:
             # a flagged pair's twist is likely wrong (by metres per second): its frame moves to its
             # stamp with its reference's twist instead
-            trusted = ref_step.stamp_twist if ref_step.stamp_twist is not None else ref_step.velocity
+            trusted = _trusted_velocity(ref_step)
             step.stamp_twist = trusted if step.flagged and trusted is not None else step.velocity
         if twists is not None and (r_ref or r_cur):
             # the pose between the two stamps, as a back end fed with the stamps reads it; the

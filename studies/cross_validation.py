@@ -294,7 +294,7 @@ def window_table(data: Path) -> list[str]:
     return lines + [""]
 
 
-#: runs already made by :func:`every_nth`: (sequence folder, configuration, n) -> steps
+#: runs already made by :func:`every_nth`: (sequence folder, first stamp, frames, configuration, n) -> steps
 _RUNS: dict = {}
 
 

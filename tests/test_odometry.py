@@ -320,3 +320,24 @@ def test_the_twist_passed_on_from_a_flagged_pair_is_never_its_own():
     assert _trusted_velocity(step) is own
     assert _trusted_velocity(dataclasses.replace(step, flagged=True, stamp_twist=reference)) is reference
     assert _trusted_velocity(dataclasses.replace(step, flagged=True)) is None
+
+
+def test_two_flagged_pairs_in_a_row_after_a_frame_without_a_twist_pass_none_on():
+    """After the first frame (no twist), two flagged pairs in a row: the first's own twist moved
+    its frame to its stamp and is not passed on; the second, with no trusted twist from it either,
+    passes none on (not the first's untrusted one)."""
+    from types import SimpleNamespace
+
+    from covo_gtsam.odometry import _trusted_velocity
+    from covo_gtsam.steps import OdometryStep, StepStatus
+
+    vo = VisualOdometry("fr1")
+    res = SimpleNamespace(pose=gtsam.Pose3())
+    origin = OdometryStep(0.0, StepStatus.ORIGIN, pose=gtsam.Pose3(), pose_covariance=np.zeros((6, 6)))
+    first, second = np.arange(6.0), np.ones(6)
+    steps = [OdometryStep(t, StepStatus.RELATIVE_POSE, velocity=v, flagged=True, covariance=np.eye(6))
+             for t, v in ((1.0, first), (2.0, second))]
+    vo._pose_between_stamps(steps[0], res, origin, (first, first), 0.0, 0.0)
+    vo._pose_between_stamps(steps[1], res, steps[0], (second, second), 0.0, 0.0)
+    assert steps[0].stamp_twist is first and _trusted_velocity(steps[0]) is None
+    assert steps[1].stamp_twist is second and _trusted_velocity(steps[1]) is None
