@@ -61,7 +61,7 @@ from .errors import InputError
 
 __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance",
            "twist_change", "latency_basis", "TwistChanges", "span_basis", "sensor_covariance", "log_likelihood",
-           "fit_sensor_terms", "fit_span_factor"]
+           "fit_sensor_terms", "MIN_SPAN_PAIRS", "span_fit_pairs", "fit_span_factor"]
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
@@ -72,6 +72,8 @@ ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "
 DEFAULT_TERMS = ("timing", "rolling_shutter", "latency", "depth_scale", "depth_time")
 #: Terms held at their configured value (a prior) when the others are fitted.
 PRIOR_TERMS = ("stamp_jitter",)
+#: Fewest pairs over more than one interval the ``span`` term is fitted on (:func:`fit_span_factor`).
+MIN_SPAN_PAIRS = 10
 
 
 @dataclass(frozen=True)
@@ -390,11 +392,18 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
                        {**{k: float(v) for k, v in sig.items()}, **{k: 0.0 for k in dead}})
 
 
+def span_fit_pairs(span_bases: np.ndarray) -> np.ndarray:
+    """Which pairs (N,) of span bases (N, 6, 6) the span term can be fitted on: those whose basis is
+    not zero (over more than one interval, after a frame with a recent translation)."""
+    return np.any(np.asarray(span_bases) != 0, axis=(1, 2))
+
+
 def fit_span_factor(errors: np.ndarray, covs: np.ndarray, span_bases: np.ndarray) -> float:
     """Maximum-likelihood sigma of the ``span`` term (:func:`span_basis`) from pairs over more than
     one interval, the other terms held: ``errors`` (N, 6) against ground truth (tangent
     ``[omega, v]``), ``covs`` (N, 6, 6) the covariances without the span term, ``span_bases``
-    (N, 6, 6). Needs at least 10 pairs whose basis is not zero; SciPy."""
+    (N, 6, 6). Needs at least :data:`MIN_SPAN_PAIRS` pairs whose basis is not zero
+    (:func:`span_fit_pairs`); SciPy."""
     errors = np.asarray(errors, dtype=float)
     covs = np.asarray(covs, dtype=float)
     span_bases = np.asarray(span_bases, dtype=float)
@@ -403,10 +412,10 @@ def fit_span_factor(errors: np.ndarray, covs: np.ndarray, span_bases: np.ndarray
                          f"and {span_bases.shape}")
     if not (np.all(np.isfinite(errors)) and np.all(np.isfinite(covs)) and np.all(np.isfinite(span_bases))):
         raise InputError("errors, covariances and bases must be finite")
-    used = np.any(span_bases != 0, axis=(1, 2))
-    if used.sum() < 10:
-        raise InputError(f"need at least 10 pairs over more than one interval with a recent translation to fit the "
-                         f"span term, got {int(used.sum())}")
+    used = span_fit_pairs(span_bases)
+    if used.sum() < MIN_SPAN_PAIRS:
+        raise InputError(f"need at least {MIN_SPAN_PAIRS} pairs over more than one interval with a recent translation "
+                         f"to fit the span term, got {int(used.sum())}")
     try:
         from scipy.optimize import minimize_scalar
     except ImportError as exc:  # pragma: no cover - depends on the installation

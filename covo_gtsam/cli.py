@@ -248,6 +248,7 @@ def cmd_analyze_noise(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     import importlib.util
 
+    from .calibration import MIN_SPAN_PAIRS
     from .io import write_json
     from .pipeline import calibrate_sequence, check_output_dir
 
@@ -291,9 +292,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print("[sensor]")
         for name, value in fit.config_values().items():
             print(f"{name} = {value:.3g}")
-        if fit.span_pairs < 10:
+        if fit.span_pairs < MIN_SPAN_PAIRS:
             print(f"(span_factor is the configured value: the runs over every 2nd and 3rd frame gave "
-                  f"{fit.span_pairs} usable pairs to fit it on, fewer than 10: pairs with ground truth at both "
+                  f"{fit.span_pairs} usable pairs to fit it on, fewer than {MIN_SPAN_PAIRS}: pairs with ground truth at both "
                   "frames, placed by the frame clock, not flagged, after a frame with a velocity)")
         else:
             print(f"(span_factor fitted on {fit.span_pairs} pairs over 2 and 3 frame intervals)")

@@ -396,15 +396,23 @@ def calibrate_sequence(
     describe the camera without its reference. With ``fit_span``, the ``span`` term (zero for
     consecutive pairs) is then fitted on the pairs of runs over every 2nd and 3rd frame
     (:func:`strided_runs`) with the other terms held (:func:`~covo_gtsam.calibration.fit_span_factor`);
-    with fewer than 10 such pairs (:func:`calibration_pairs` with ``longer``, and a recent translation
-    to scale the term with) it keeps ``config``'s value (``SensorTerms.span_pairs`` says how many it
+    with fewer than :data:`~covo_gtsam.calibration.MIN_SPAN_PAIRS` such pairs (:func:`calibration_pairs`
+    with ``longer``, and a recent translation to scale the term with) it keeps ``config``'s value (``SensorTerms.span_pairs`` says how many it
     had). Returns ``(SensorTerms, RunResult)``.
 
     Raises:
         DatasetError: the sequence has no ground truth.
         InputError: fewer than 10 usable pairs.
     """
-    from .calibration import DEFAULT_TERMS, ERROR_TERMS, PRIOR_TERMS, fit_sensor_terms, fit_span_factor
+    from .calibration import (
+        DEFAULT_TERMS,
+        ERROR_TERMS,
+        MIN_SPAN_PAIRS,
+        PRIOR_TERMS,
+        fit_sensor_terms,
+        fit_span_factor,
+        span_fit_pairs,
+    )
     from .evaluation import ground_truth_lookup, reference_covariances, relative_ground_truth
     from .metrics import relative_pose_tangent_errors
 
@@ -429,13 +437,18 @@ def calibrate_sequence(
         raise InputError(f"{seq.path}: the fit needs at least 10 consecutive tracked frame pairs with usable ground "
                          f"truth at both frames{clock}; got {len(T_est)} ({len(tracked)} consecutive pairs tracked, "
                          f"{len(with_truth)} of them with ground truth)")
-    fixed = prior_covariances(consecutive, priors)
-    if reference_sd is not None:
-        jitter = reference_covariances(seq.gt_samples, reference_sd)([s.ref_timestamp for s in consecutive],
-                                                                      [s.timestamp for s in consecutive])
-        fixed = jitter if fixed is None else fixed + jitter
+    def known(steps) -> np.ndarray | None:
+        """The terms the fits hold (N, 6, 6): the priors', and the reference's jitter if given."""
+        fixed = prior_covariances(steps, priors)
+        if reference_sd is not None:
+            jitter = reference_covariances(seq.gt_samples, reference_sd)([s.ref_timestamp for s in steps],
+                                                                          [s.timestamp for s in steps])
+            fixed = jitter if fixed is None else fixed + jitter
+        return fixed
+
     fit = fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs, fit_correlation_factor,
-                           bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms), fixed=fixed)
+                           bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),
+                           fixed=known(consecutive))
     if not fit_span:
         return fit, result
     longer = [s for run in strided_runs(seq, config, max_frames, progress=progress)
@@ -446,13 +459,10 @@ def calibrate_sequence(
         bases = stacked_bases(longer, tuple(fit.sigmas) + ("span",))
         k = np.array([config.frame_intervals(s.timestamp - s.ref_timestamp) for s in longer])
         held = fit.covariances(point_covs, {n: B for n, B in bases.items() if n != "span"}, k)
-        more = prior_covariances(longer, priors)
-        held = held if more is None else held + more
-        if reference_sd is not None:
-            held = held + reference_covariances(seq.gt_samples, reference_sd)([s.ref_timestamp for s in longer],
-                                                                                [s.timestamp for s in longer])
-        used = int(np.count_nonzero(np.any(bases["span"] != 0, axis=(1, 2))))
-        if used >= 10:  # else too few such pairs: the configured value stays
+        fixed = known(longer)
+        held = held if fixed is None else held + fixed
+        used = int(span_fit_pairs(bases["span"]).sum())
+        if used >= MIN_SPAN_PAIRS:  # else too few such pairs: the configured value stays
             span = fit_span_factor(relative_pose_tangent_errors(T_est, T_true), held, bases["span"])
     return replace(fit, sigmas={**fit.sigmas, "span": span}, span_pairs=used), result
 
