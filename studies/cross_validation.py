@@ -341,7 +341,6 @@ def span_table(data: Path) -> list[str]:
     (:func:`covo_gtsam.pipeline.calibrate_sequence`: the consecutive pairs, then the pairs of runs
     over every 2nd and 3rd frame) and checked on the other half (every 2nd and 3rd frame, frame to
     frame, keyframe mode) and on fr1_desk's keyframe pairs, with and without the span term."""
-    from covo_gtsam.odometry import VisualOdometry
     from covo_gtsam.pipeline import calibrate_sequence
 
     seq = TumSequence(data / "tum" / RPY)
@@ -362,9 +361,7 @@ def span_table(data: Path) -> list[str]:
         return f"{nt.mean():.2f} / {nr.mean():.2f} ({' / '.join(cells)})"
 
     def keyframe_run(part: TumSequence, cfg: OdometryConfig) -> list:
-        vo = VisualOdometry(part.camera_name, cfg.replace(tracking={"keyframes": True}))
-        return [vo.register_frame(*part.load(i), part.timestamps[i], depth_timestamp=part.depth_timestamps[i])
-                for i in range(len(part.timestamps))]
+        return every_nth(part, cfg.replace(tracking={"keyframes": True}), 1)
 
     lines = ["## Pairs over more than one interval: the span term", "",
              "The default model fitted on one half of fr1_rpy as `covo calibrate` fits it (the consecutive pairs; "
