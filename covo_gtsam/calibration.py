@@ -60,7 +60,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance",
-           "twist_change", "latency_basis", "TwistChanges", "span_basis", "sensor_covariance", "log_likelihood",
+           "twist_change", "known_change_basis", "latency_basis", "TwistChanges", "span_basis", "sensor_covariance", "log_likelihood",
            "fit_sensor_terms", "MIN_SPAN_PAIRS", "span_fit_pairs", "fit_span_factor"]
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
@@ -144,6 +144,28 @@ def twist_change(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.nda
 
     T = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float))
     return np.asarray(twist_cur, dtype=float) - T.inverse().AdjointMap() @ np.asarray(twist_ref, dtype=float)
+
+
+def _change_and_noise(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray, noise_ref: np.ndarray,
+                      noise_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`twist_change` ``b`` (6,) and the covariance (6, 6) of its estimation noise, ``N_cur +
+    Ad(T^-1) N_ref Ad(T^-1)^T`` from the two twists' noise covariances ``noise_ref``/``noise_cur``."""
+    import gtsam
+
+    Ad = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float)).inverse().AdjointMap()
+    return twist_change(T_ref_cur, twist_ref, twist_cur), noise_cur + Ad @ noise_ref @ Ad.T
+
+
+def known_change_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray, noise_ref: np.ndarray,
+                       noise_cur: np.ndarray) -> np.ndarray:
+    """Basis (6, 6) of the ``latency`` term for a change of the twist that was measured: ``b b^T - N``
+    (:func:`twist_change`, ``N`` its estimation noise from the twists' noise covariances (6, 6)),
+    rotation block, clipped to positive semidefinite; as one change of :class:`TwistChanges`."""
+    b, noise = _change_and_noise(T_ref_cur, twist_ref, twist_cur, noise_ref, noise_cur)
+    w, U = np.linalg.eigh(np.outer(b[:3], b[:3]) - noise[:3, :3])
+    out = np.zeros((6, 6))
+    out[:3, :3] = (U * np.clip(w, 0.0, None)) @ U.T
+    return out
 
 
 def latency_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray) -> np.ndarray:
@@ -251,11 +273,8 @@ class TwistChanges:
         ``T_ref,cur`` (4x4) is the later pair, ``noise_ref``/``noise_cur`` (6, 6) the covariances of
         the two twists' estimation noise ((rad/s)^2 and (m/s)^2 blocks: a pair's per-point
         covariance over its interval squared)."""
-        import gtsam
-
-        Ad = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float)).inverse().AdjointMap()
-        change = twist_change(T_ref_cur, twist_ref, twist_cur) / intervals
-        noise = (noise_cur + Ad @ noise_ref @ Ad.T) / intervals**2
+        change, noise = _change_and_noise(T_ref_cur, twist_ref, twist_cur, noise_ref, noise_cur)
+        change, noise = change / intervals, noise / intervals**2
         if not (np.all(np.isfinite(change)) and np.all(np.isfinite(noise))):
             return
         if self._changes:

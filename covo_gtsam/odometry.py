@@ -15,7 +15,7 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
-from .calibration import TwistChanges, span_basis, timing_covariance
+from .calibration import TwistChanges, known_change_basis, span_basis, timing_covariance
 from .camera import Camera
 from .choices import MotionModel
 from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
@@ -114,6 +114,8 @@ class VisualOdometry(DeprecatedStepAccess):
         self._twist_changes = TwistChanges(self.config.sensor.twist_history)
         #: stamp of a frame -> the span its twist was taken over (for the latency term's history)
         self._twist_noise: dict[float, _TwistSpan] = {}
+        #: stamp of the last posed frame and of the keyframe -> their twists' estimation noise (6x6)
+        self._posed_twist_noise: dict[float, np.ndarray] = {}
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
         self._clock_offset: float | None = None  # offset of the frame being registered from the frame clock
         self._placed_offsets: list[float] = []  # clock offsets of the frames the clock placed
@@ -268,10 +270,14 @@ class VisualOdometry(DeprecatedStepAccess):
             self._velocity = None
             self._twist_changes.clear()
             self._twist_noise = {}
+            self._posed_twist_noise = {}
         if step.has_pose:
             self._last = _PosedFrame(frame, step)
             if step.status is not StepStatus.RELATIVE_POSE or not self.config.tracking.keyframes:
                 self._keyframe = self._last
+            span = self._twist_noise.get(step.timestamp)
+            kept = {t: N for t, N in self._posed_twist_noise.items() if t == self._keyframe.step.timestamp}
+            self._posed_twist_noise = kept if span is None else {**kept, step.timestamp: span.noise}
         self._lost_run = 0 if step.has_pose else self._lost_run + 1
         self._last_stamp = step.timestamp
         self._history.add(step)
@@ -321,7 +327,7 @@ class VisualOdometry(DeprecatedStepAccess):
         step.velocity = None if twists is None else twists[1]
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp)
-        step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt)
+        step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt, timestamp)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -512,7 +518,7 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
-                     dt: float) -> dict:
+                     dt: float, timestamp: float) -> dict:
         """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`); ``twists``
         are the camera's twists at the two frames (:func:`~covo_gtsam.rolling_shutter.frame_twists`),
         None without motion."""
@@ -529,10 +535,18 @@ class VisualOdometry(DeprecatedStepAccess):
         twist_ref, velocity = twists
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
         # the covariance of the twist's change over the pair, from the pairs before this one (over k
-        # frame intervals the twist changes k times as much): the latency term's basis, and the
-        # rolling-shutter term's below
-        change_cov = self.config.sensor.frame_intervals(dt) ** 2 * self._twist_changes.basis()
-        bases["latency"] = change_cov
+        # frame intervals the twist changes k times as much), the latency term's basis; against an
+        # older keyframe, the change from the keyframe to the last posed frame was measured, and only
+        # the change since then (m intervals) comes from the pairs before
+        history = self._twist_changes.basis()
+        known = self._known_twist_change(T, ref_step, timestamp)
+        if known is None:
+            change_cov = self.config.sensor.frame_intervals(dt) ** 2 * history
+            bases["latency"] = change_cov
+        else:
+            measured, m = known
+            change_cov = m**2 * history  # the current frame's twist was taken over these m intervals
+            bases["latency"] = measured + change_cov
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
         # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
         n_cur = self._clock.samples if self._clock_offset is not None else 0
@@ -544,18 +558,41 @@ class VisualOdometry(DeprecatedStepAccess):
         if self.config.sensor.rolling_shutter_s > 0:
             # the twist at the current frame may differ from the pair's mean by half the change of
             # the twist over the pair: its size from the recent pairs (as the latency term's, not
-            # from this pair's own twist, whose error would enter its own covariance); without a
+            # from this pair's own twist, whose error would enter its own covariance); an older
+            # keyframe's twist, its own pair's mean, by as much over one interval; without a
             # previous pair, by half of the twist itself (both frames)
-            rows_cur = row_time_offsets(pairs.uv_cur[:, 1], self.camera.height, self.config.sensor.rolling_shutter_s)
-            B = rolling_shutter_basis(G_cur, X_cur, rows_cur)
-            if _trusted_velocity(ref_step) is not None:
-                bases["rolling_shutter"] = 0.25 * B @ change_cov @ B.T
-            else:
-                rows_ref = row_time_offsets(pairs.uv_ref[:, 1], self.camera.height,
-                                            self.config.sensor.rolling_shutter_s)
-                u = (B + rolling_shutter_basis(G_ref, X_ref, rows_ref)) @ (0.5 * velocity)
+            readout, height = self.config.sensor.rolling_shutter_s, self.camera.height
+            B = rolling_shutter_basis(G_cur, X_cur, row_time_offsets(pairs.uv_cur[:, 1], height, readout))
+            B_ref = rolling_shutter_basis(G_ref, X_ref, row_time_offsets(pairs.uv_ref[:, 1], height, readout))
+            if _trusted_velocity(ref_step) is None:
+                u = (B + B_ref) @ (0.5 * velocity)
                 bases["rolling_shutter"] = np.outer(u, u)
+            else:
+                bases["rolling_shutter"] = 0.25 * B @ change_cov @ B.T
+                if known is not None:
+                    bases["rolling_shutter"] += 0.25 * B_ref @ history @ B_ref.T
         return bases
+
+    def _known_twist_change(self, T: gtsam.Pose3, ref_step: OdometryStep, timestamp: float
+                            ) -> tuple[np.ndarray, int] | None:
+        """Against an older keyframe (``T`` is ``T_ref,cur``): the latency basis of the measured change
+        of the twist from the keyframe to the last posed frame, both twists from their own pairs, not
+        this one (:func:`~covo_gtsam.calibration.known_change_basis`, carried to the current frame),
+        and the frame intervals since the last posed frame; None against the last posed frame or
+        without both twists and their noise."""
+        since = self._since_last(T, ref_step, timestamp)
+        if since is None:
+            return None
+        last, T_last_cur, dt_last = since
+        twist_ref, twist_last = _trusted_velocity(ref_step), _trusted_velocity(last)
+        noise_ref = self._posed_twist_noise.get(ref_step.timestamp)
+        noise_last = self._posed_twist_noise.get(last.timestamp)
+        if twist_ref is None or twist_last is None or noise_ref is None or noise_last is None:
+            return None
+        B = known_change_basis(ref_step.pose.between(last.pose).matrix(), twist_ref, twist_last, noise_ref, noise_last)
+        R = T_last_cur.rotation().matrix().T  # the last frame's axes in the current frame's
+        B[:3, :3] = R @ B[:3, :3] @ R.T
+        return B, self.config.sensor.frame_intervals(dt_last)
 
     def _to_frame_time(self, fd: FrameData, X: np.ndarray, uv: np.ndarray, twist: np.ndarray) -> np.ndarray:
         """A frame's points moved to its colour image's timestamp: the depths along their rays to
