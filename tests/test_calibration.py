@@ -241,6 +241,53 @@ def test_twist_changes_subtract_the_estimation_noise_and_use_only_past_pairs():
     assert not np.allclose(tc.basis(), first)
 
 
+def test_known_change_basis_gives_back_a_measured_change_without_its_noise():
+    """One measured change of the twist from a keyframe to a later frame (the later frame turned
+    1.2 rad against it), both twists drawn around the truth with anisotropic noise: averaged over
+    draws, the basis is the true change's ``b b^T`` (rotation block) plus the noise across the
+    change's direction, which one change cannot tell from the change (conservative; the twists'
+    noise carried by Ad, as the Monte Carlo of a delay above checks :func:`twist_change`). Without
+    the noise subtracted, or without Ad on the keyframe's noise, it is not. Noise-free it is the
+    latency basis's rotation block, and every draw is positive semidefinite."""
+    import gtsam
+
+    from covo_gtsam.calibration import known_change_basis, latency_basis, twist_change
+
+    rng = np.random.default_rng(5)
+    T = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.0, 0.0, 1.2), np.array([0.1, 0.0, 0.0])).matrix()
+    Ad = gtsam.Pose3(T).inverse().AdjointMap()
+    N_ref = np.diag([4.0, 0.25, 1.0, 1.0, 1.0, 1.0]) * 0.04  # (rad/s)^2: 0.1-0.4 rad/s per axis
+    N_cur = np.diag([0.25, 1.0, 4.0, 1.0, 1.0, 1.0]) * 0.04
+    xi_ref = np.array([0.2, -1.0, 0.3, 0.05, 0.0, 0.1])
+    delta = np.array([1.5, 0.5, -1.0, 0.0, 0.0, 0.0])  # rad/s: well above the noise
+    xi_cur = Ad @ xi_ref + delta
+    zero = np.zeros((6, 6))
+    np.testing.assert_allclose(known_change_basis(T, xi_ref, xi_cur, zero, zero)[:3, :3],
+                               latency_basis(T, xi_ref, xi_cur)[:3, :3], rtol=1e-12)
+    assert np.all(known_change_basis(T, xi_ref, xi_cur, zero, zero)[3:] == 0)
+    n = 20000
+    a = xi_ref + rng.multivariate_normal(np.zeros(6), N_ref, n)
+    b = xi_cur + rng.multivariate_normal(np.zeros(6), N_cur, n)
+    draws = np.array([known_change_basis(T, x, y, N_ref, N_cur) for x, y in zip(a, b)])
+    assert np.linalg.eigvalsh(draws[:, :3, :3]).min() > -1e-12
+    N = (N_cur + Ad @ N_ref @ Ad.T)[:3, :3]
+    u = delta[:3] / np.linalg.norm(delta[:3])
+    P = np.eye(3) - np.outer(u, u)
+    expected = np.outer(delta[:3], delta[:3]) + P @ N @ P
+    tol = 0.025  # sampling error about 0.01
+    np.testing.assert_allclose(draws.mean(axis=0)[:3, :3], expected, atol=tol)
+    raw = np.mean([np.outer(d, d) for d in (twist_change(T, x, y)[:3] for x, y in zip(a, b))], axis=0)
+    assert np.abs(raw - expected).max() > 2 * tol  # the noise left in
+    no_ad = np.mean([known_change_basis(T, x, y, zero, N_cur + N_ref) for x, y in zip(a, b)], axis=0)
+    assert np.abs(no_ad[:3, :3] - expected).max() > 2 * tol  # the keyframe's noise in the wrong axes
+    # pure noise: about two thirds of it stays (noise along the drawn direction is taken off, the
+    # rest cannot be told from a change), against all of it without the subtraction
+    y = Ad @ xi_ref + rng.multivariate_normal(np.zeros(6), N_cur, 2000)
+    pure = np.mean([known_change_basis(T, x, z, N_ref, N_cur) for x, z in zip(a, y)], axis=0)
+    unsubtracted = np.mean([np.outer(d, d) for d in (twist_change(T, x, z)[:3] for x, z in zip(a, y))], axis=0)
+    assert np.trace(pure) < 0.75 * np.trace(unsubtracted)
+
+
 @pytest.mark.slow
 def test_fit_recovers_frame_level_terms():
     """Errors drawn with a timing term (tau 3 ms, over twists of varying speed) and a rank-one

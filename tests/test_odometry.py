@@ -275,6 +275,37 @@ def test_keyframe_pairs_feed_and_get_the_latency_term(sample_dir):
     assert len(with_basis) >= 10 and all(with_basis)
 
 
+def test_keyframe_pairs_take_the_twist_change_to_the_last_frame_as_measured(sample_dir):
+    """Against an older keyframe the latency basis is the change of the twist from the keyframe to
+    the last posed frame, as measured by their own pairs, plus ``m^2`` times the recent changes'
+    basis for the ``m`` intervals since the last posed frame, not ``k^2`` times it for the pair's
+    ``k``: two runs that share frames 0-12 and then see frame 13 (m = 1) or 14 (m = 2), both
+    against keyframe 9, have latency traces (rotation) that differ by 3 times the history's, and
+    the same measured part (its trace; its axes turn with the current frame), which is not zero."""
+    from covo_gtsam.datasets.tum import TumSequence
+
+    seq = TumSequence(sample_dir)
+    cfg = OdometryConfig().replace(tracking={"keyframes": True})
+    frames = [(*seq.load(i), seq.timestamps[i]) for i in range(15)]
+    traces, history = {}, None
+    for last in (13, 14):
+        vo = VisualOdometry(seq.camera_name, cfg)
+        steps = [vo.register_frame(*frames[i]) for i in range(13)]
+        h = np.trace(vo._twist_changes.basis()[:3, :3])
+        assert history is None or h == history
+        history = h
+        step = vo.register_frame(*frames[last])
+        assert all(s.status == "tracked" for s in steps[1:]) and step.status == "tracked"
+        assert step.ref_timestamp == seq.timestamps[9] and steps[-1].ref_timestamp == seq.timestamps[9]
+        traces[last] = np.trace(step.error_bases["latency"][:3, :3])
+    assert history > 0
+    np.testing.assert_allclose(traces[14] - traces[13], 3 * history, rtol=1e-9)
+    measured = traces[13] - history
+    assert measured > 0.01 * history
+    k13, k14 = 13 - 9, 14 - 9  # the old law, k^2 times the history, gives (k14^2 - k13^2) = 9 times it
+    assert abs((traces[14] - traces[13]) - (k14**2 - k13**2) * history) > history
+
+
 def test_span_basis_of_a_pair_comes_from_the_frame_before_it(sample_dir):
     """A pair over k > 1 intervals gets the span basis ``d^2 (k^2 - 1)`` per translation axis with
     ``d`` the translation per interval of the last posed frame's own pair, not of the pair itself
