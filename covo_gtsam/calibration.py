@@ -31,7 +31,9 @@ physical size (:data:`ERROR_TERMS`):
   the same time, so the pair is off by ``L (xi_cur - Ad(T^-1) xi_ref)``: the change of the twist
   between the frames, not the twist itself as with ``timing`` (:func:`latency_basis`). A pair's
   own twist carries its own estimation error, so the basis is the recent pairs' mean
-  (:class:`TwistChanges`), not this pair's;
+  (:class:`TwistChanges`), not this pair's; against an older keyframe the change from the keyframe
+  to the last posed frame was measured by their own pairs (:func:`known_change_basis`) and only
+  the rest comes from that mean;
 * ``stamp_jitter`` (s): like ``timing``, the jitter of the stamps around the camera's regular
   clock: in full for a frame the frame clock has not placed yet (the first frames of a run), and
   ``1/n`` of its variance for a frame placed by a clock fitted to ``n`` stamps (the uncertainty of

@@ -28,7 +28,7 @@ from .frame_errors import (depth_scale_basis, depth_time_basis, depth_time_shift
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
-from .integrity import IntegrityScale, depth_free_check
+from .integrity import IntegrityScale, depth_free_check, per_span
 from .noise import blur_covariances, depth_lookup_variance
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
 from .steps import POSED_STATUSES, DeprecatedStepAccess, OdometryStep, StepHistory, StepStatus
@@ -261,7 +261,7 @@ class VisualOdometry(DeprecatedStepAccess):
         self._keyframe = keyframe
         if step.status is StepStatus.RELATIVE_POSE:
             if step.integrity_statistic is not None:
-                self._integrity.add(step.integrity_statistic)
+                self._integrity.add(self._per_span(step))
             last = self._last.step
             if step.timestamp > last.timestamp:
                 self._velocity = (last.pose.between(step.pose), step.timestamp - last.timestamp)
@@ -457,10 +457,15 @@ class VisualOdometry(DeprecatedStepAccess):
         if check is not None and np.isfinite(check.statistic) and np.all(np.isfinite(check.inflation())):
             # the run's scale learns from this pair only if the pair is kept (register_frame)
             step.integrity_statistic = check.statistic
-            step.quality = self._integrity.normalise(check.statistic)
+            step.quality = self._integrity.normalise(self._per_span(step))
             step.flagged = not step.quality <= self.config.sensor.integrity_threshold
             if step.flagged:  # honest: the covariance covers the disagreement of the two depth-free estimates
                 step.covariance = check.inflate(step.covariance, step.quality)
+
+    def _per_span(self, step: OdometryStep) -> float:
+        """``step``'s raw integrity statistic on the scale of one frame interval
+        (:func:`~covo_gtsam.integrity.per_span`): what the run's scale learns from and judges."""
+        return per_span(step.integrity_statistic, self.config.sensor.frame_intervals(step.timestamp - step.ref_timestamp))
 
     def _pose_between_stamps(self, step: OdometryStep, res: RelativePoseResult, ref_step: OdometryStep,
                              twists: tuple[np.ndarray, np.ndarray] | None, r_ref: float, r_cur: float) -> None:
