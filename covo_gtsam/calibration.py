@@ -207,7 +207,8 @@ class TwistChanges:
     ``b b^T`` the two pairs' estimation noise accounts for (their per-point covariances over
     ``dt^2``); changes of consecutive pairs of equal length, per frame interval (a change between
     pairs ``m`` intervals long counts ``1/m^2``), and a pair ``k`` intervals long gets ``k^2`` times
-    the basis (odometry); rotation block only (a translation change of the twist is below its noise). The
+    the basis (odometry; against an older keyframe the measured change to the last posed frame,
+    :func:`known_change_basis`, plus ``m^2`` times the basis over the ``m`` intervals since); rotation block only (a translation change of the twist is below its noise). The
     mean is clipped to positive semidefinite (clipping each term instead would leave most of the
     noise in). Zero until a change has been seen.
 

@@ -114,8 +114,8 @@ class VisualOdometry(DeprecatedStepAccess):
         self._twist_changes = TwistChanges(self.config.sensor.twist_history)
         #: stamp of a frame -> the span its twist was taken over (for the latency term's history)
         self._twist_noise: dict[float, _TwistSpan] = {}
-        #: stamp of the last posed frame and of the keyframe -> their twists' estimation noise (6x6)
-        self._posed_twist_noise: dict[float, np.ndarray] = {}
+        #: stamp of the last posed frame and of the keyframe -> what their twists were taken over
+        self._posed_twists: dict[float, _TwistSpan] = {}
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
         self._clock_offset: float | None = None  # offset of the frame being registered from the frame clock
         self._placed_offsets: list[float] = []  # clock offsets of the frames the clock placed
@@ -270,14 +270,14 @@ class VisualOdometry(DeprecatedStepAccess):
             self._velocity = None
             self._twist_changes.clear()
             self._twist_noise = {}
-            self._posed_twist_noise = {}
+            self._posed_twists = {}
         if step.has_pose:
             self._last = _PosedFrame(frame, step)
             if step.status is not StepStatus.RELATIVE_POSE or not self.config.tracking.keyframes:
                 self._keyframe = self._last
             span = self._twist_noise.get(step.timestamp)
-            kept = {t: N for t, N in self._posed_twist_noise.items() if t == self._keyframe.step.timestamp}
-            self._posed_twist_noise = kept if span is None else {**kept, step.timestamp: span.noise}
+            kept = {t: v for t, v in self._posed_twists.items() if t == self._keyframe.step.timestamp}
+            self._posed_twists = kept if span is None else {**kept, step.timestamp: span}
         self._lost_run = 0 if step.has_pose else self._lost_run + 1
         self._last_stamp = step.timestamp
         self._history.add(step)
@@ -549,7 +549,7 @@ class VisualOdometry(DeprecatedStepAccess):
             change_cov = self.config.sensor.frame_intervals(dt) ** 2 * history
             bases["latency"] = change_cov
         else:
-            measured, m = known
+            measured, m, _ = known
             change_cov = m**2 * history  # the current frame's twist was taken over these m intervals
             bases["latency"] = measured + change_cov
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
@@ -564,8 +564,8 @@ class VisualOdometry(DeprecatedStepAccess):
             # the twist at the current frame may differ from the pair's mean by half the change of
             # the twist over the pair: its size from the recent pairs (as the latency term's, not
             # from this pair's own twist, whose error would enter its own covariance); an older
-            # keyframe's twist, its own pair's mean, by as much over one interval; without a
-            # previous pair, by half of the twist itself (both frames)
+            # keyframe's twist, its own pair's mean, by as much over the intervals it was taken
+            # over; without a previous pair, by half of the twist itself (both frames)
             readout, height = self.config.sensor.rolling_shutter_s, self.camera.height
             B = rolling_shutter_basis(G_cur, X_cur, row_time_offsets(pairs.uv_cur[:, 1], height, readout))
             B_ref = rolling_shutter_basis(G_ref, X_ref, row_time_offsets(pairs.uv_ref[:, 1], height, readout))
@@ -575,29 +575,30 @@ class VisualOdometry(DeprecatedStepAccess):
             else:
                 bases["rolling_shutter"] = 0.25 * B @ change_cov @ B.T
                 if known is not None:
-                    bases["rolling_shutter"] += 0.25 * B_ref @ history @ B_ref.T
+                    bases["rolling_shutter"] += 0.25 * known[2] ** 2 * B_ref @ history @ B_ref.T
         return bases
 
     def _known_twist_change(self, T: gtsam.Pose3, ref_step: OdometryStep, timestamp: float
-                            ) -> tuple[np.ndarray, int] | None:
+                            ) -> tuple[np.ndarray, int, int] | None:
         """Against an older keyframe (``T`` is ``T_ref,cur``): the latency basis of the measured change
         of the twist from the keyframe to the last posed frame, both twists from their own pairs, not
         this one (:func:`~covo_gtsam.calibration.known_change_basis`, carried to the current frame),
-        and the frame intervals since the last posed frame; None against the last posed frame or
-        without both twists and their noise."""
+        the frame intervals since the last posed frame and those the keyframe's twist was taken
+        over; None against the last posed frame, after a flagged keyframe (its twist is then its
+        reference's, not the one whose noise is kept) or without both twists and their noise."""
         since = self._since_last(T, ref_step, timestamp)
-        if since is None:
+        if since is None or ref_step.flagged:
             return None
         last, T_last_cur, dt_last = since
         twist_ref, twist_last = _trusted_velocity(ref_step), _trusted_velocity(last)
-        noise_ref = self._posed_twist_noise.get(ref_step.timestamp)
-        noise_last = self._posed_twist_noise.get(last.timestamp)
-        if twist_ref is None or twist_last is None or noise_ref is None or noise_last is None:
+        span_ref, span_last = self._posed_twists.get(ref_step.timestamp), self._posed_twists.get(last.timestamp)
+        if twist_ref is None or twist_last is None or span_ref is None or span_last is None:
             return None
-        B = known_change_basis(ref_step.pose.between(last.pose).matrix(), twist_ref, twist_last, noise_ref, noise_last)
+        B = known_change_basis(ref_step.pose.between(last.pose).matrix(), twist_ref, twist_last, span_ref.noise,
+                               span_last.noise)
         R = T_last_cur.rotation().matrix().T  # the last frame's axes in the current frame's
         B[:3, :3] = R @ B[:3, :3] @ R.T
-        return B, self.config.sensor.frame_intervals(dt_last)
+        return B, self.config.sensor.frame_intervals(dt_last), span_ref.intervals
 
     def _to_frame_time(self, fd: FrameData, X: np.ndarray, uv: np.ndarray, twist: np.ndarray) -> np.ndarray:
         """A frame's points moved to its colour image's timestamp: the depths along their rays to

@@ -280,30 +280,55 @@ def test_keyframe_pairs_take_the_twist_change_to_the_last_frame_as_measured(samp
     the last posed frame, as measured by their own pairs, plus ``m^2`` times the recent changes'
     basis for the ``m`` intervals since the last posed frame, not ``k^2`` times it for the pair's
     ``k``: two runs that share frames 0-12 and then see frame 13 (m = 1) or 14 (m = 2), both
-    against keyframe 9, have latency traces (rotation) that differ by 3 times the history's, and
-    the same measured part (its trace; its axes turn with the current frame), which is not zero."""
+    against keyframe 9, give the same measured part once it is turned back into the last posed
+    frame's axes (it does not depend on the current pair; turned the other way, or taken from the
+    current pair, it would differ), and it is not zero. (Before frame 20 the frame clock does not
+    move the poses, so the bases are as built.)"""
     from covo_gtsam.datasets.tum import TumSequence
 
     seq = TumSequence(sample_dir)
     cfg = OdometryConfig().replace(tracking={"keyframes": True})
     frames = [(*seq.load(i), seq.timestamps[i]) for i in range(15)]
-    traces, history = {}, None
+    measured, history = {}, None
     for last in (13, 14):
         vo = VisualOdometry(seq.camera_name, cfg)
         steps = [vo.register_frame(*frames[i]) for i in range(13)]
-        h = np.trace(vo._twist_changes.basis()[:3, :3])
-        assert history is None or h == history
-        history = h
+        H = vo._twist_changes.basis()
+        assert history is None or np.array_equal(H, history)
+        history = H
         step = vo.register_frame(*frames[last])
         assert all(s.status == "tracked" for s in steps[1:]) and step.status == "tracked"
         assert step.ref_timestamp == seq.timestamps[9] and steps[-1].ref_timestamp == seq.timestamps[9]
-        traces[last] = np.trace(step.error_bases["latency"][:3, :3])
-    assert history > 0
-    np.testing.assert_allclose(traces[14] - traces[13], 3 * history, rtol=1e-9)
-    measured = traces[13] - history
-    assert measured > 0.01 * history
-    k13, k14 = 13 - 9, 14 - 9  # the old law, k^2 times the history, gives (k14^2 - k13^2) = 9 times it
-    assert abs((traces[14] - traces[13]) - (k14**2 - k13**2) * history) > history
+        m = cfg.frame_intervals(step.timestamp - steps[-1].timestamp)
+        assert m == last - 12
+        R = steps[-1].pose.rotation().between(step.pose.rotation()).matrix()  # R_last,cur
+        measured[last] = R @ (step.error_bases["latency"] - m**2 * H)[:3, :3] @ R.T
+    assert np.trace(history) > 0
+    np.testing.assert_allclose(measured[14], measured[13], rtol=1e-9, atol=1e-12 * np.abs(measured[13]).max())
+    assert np.trace(measured[13]) > 0.01 * np.trace(history)
+
+
+def test_keyframe_pairs_rolling_shutter_term_counts_both_frames_twist_errors(sample_dir, monkeypatch):
+    """The rolling-shutter term of a pair is ``1/4 B H B^T`` per frame whose compensation twist may
+    be off by half a recent change (``H`` the history's basis, ``B`` the frame's response to a twist
+    error): frame to frame only the current frame's (the reference's twist is a central estimate),
+    against an older keyframe also the keyframe's (its own pair's mean). With every response ``B``
+    replaced by the identity the term is ``H / 4`` frame to frame and ``H / 2`` against keyframe 9."""
+    import covo_gtsam.odometry as odometry_module
+    from covo_gtsam.datasets.tum import TumSequence
+
+    monkeypatch.setattr(odometry_module, "rolling_shutter_basis", lambda G, X, rows: np.eye(6))
+    seq = TumSequence(sample_dir)
+    frames = [(*seq.load(i), seq.timestamps[i]) for i in range(14)]
+    for keyframes, share in ((False, 0.25), (True, 0.5)):
+        vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(tracking={"keyframes": keyframes}))
+        for i in range(13):
+            vo.register_frame(*frames[i])
+        H = vo._twist_changes.basis()
+        step = vo.register_frame(*frames[13])
+        assert step.status == "tracked" and np.trace(H) > 0
+        assert (step.ref_timestamp == seq.timestamps[9]) == keyframes
+        np.testing.assert_allclose(step.error_bases["rolling_shutter"], share * H, rtol=1e-12, atol=1e-15)
 
 
 def test_span_basis_of_a_pair_comes_from_the_frame_before_it(sample_dir):
