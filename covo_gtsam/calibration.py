@@ -32,8 +32,8 @@ physical size (:data:`ERROR_TERMS`):
   between the frames, not the twist itself as with ``timing`` (:func:`latency_basis`). A pair's
   own twist carries its own estimation error, so the basis is the recent pairs' mean
   (:class:`TwistChanges`), not this pair's; against an older keyframe the change from the keyframe
-  to the last posed frame was measured by their own pairs (:func:`known_change_basis`) and only
-  the rest comes from that mean;
+  to the last posed frame was measured by their own pairs (:func:`known_change_basis`, carried on
+  over the pair) and only a new change since comes from that mean;
 * ``stamp_jitter`` (s): like ``timing``, the jitter of the stamps around the camera's regular
   clock: in full for a frame the frame clock has not placed yet (the first frames of a run), and
   ``1/n`` of its variance for a frame placed by a clock fitted to ``n`` stamps (the uncertainty of
@@ -208,7 +208,8 @@ class TwistChanges:
     ``dt^2``); changes of consecutive pairs of equal length, per frame interval (a change between
     pairs ``m`` intervals long counts ``1/m^2``), and a pair ``k`` intervals long gets ``k^2`` times
     the basis (odometry; against an older keyframe the measured change to the last posed frame,
-    :func:`known_change_basis`, plus ``m^2`` times the basis over the ``m`` intervals since); rotation block only (a translation change of the twist is below its noise). The
+    :func:`known_change_basis`, carried on over the pair, plus ``m^2`` times the basis over the ``m``
+    intervals since); rotation block only (a translation change of the twist is below its noise). The
     mean is clipped to positive semidefinite (clipping each term instead would leave most of the
     noise in). Zero until a change has been seen.
 

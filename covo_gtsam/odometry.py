@@ -541,17 +541,19 @@ class VisualOdometry(DeprecatedStepAccess):
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
         # the covariance of the twist's change over the pair, from the pairs before this one (over k
         # frame intervals the twist changes k times as much), the latency term's basis; against an
-        # older keyframe, the change from the keyframe to the last posed frame was measured, and only
-        # the change since then (m intervals) comes from the pairs before
+        # older keyframe, the change over the k - m intervals from the keyframe to the last posed
+        # frame was measured: it goes on k / (k - m) times as far over the pair, and the change since
+        # the last posed frame (m intervals) may also be new, as the pairs before say
         history = self._twist_changes.basis()
         known = self._known_twist_change(T, ref_step, timestamp)
+        k = self.config.sensor.frame_intervals(dt)
         if known is None:
-            change_cov = self.config.sensor.frame_intervals(dt) ** 2 * history
+            change_cov = k**2 * history
             bases["latency"] = change_cov
         else:
             measured, m, _ = known
             change_cov = m**2 * history  # the current frame's twist was taken over these m intervals
-            bases["latency"] = measured + change_cov
+            bases["latency"] = (k / max(k - m, 1)) ** 2 * measured + change_cov
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
         # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
         n_cur = self._clock.samples if self._clock_offset is not None else 0

@@ -277,9 +277,10 @@ def test_keyframe_pairs_feed_and_get_the_latency_term(sample_dir):
 
 def test_keyframe_pairs_take_the_twist_change_to_the_last_frame_as_measured(sample_dir):
     """Against an older keyframe the latency basis is the change of the twist from the keyframe to
-    the last posed frame, as measured by their own pairs, plus ``m^2`` times the recent changes'
-    basis for the ``m`` intervals since the last posed frame, not ``k^2`` times it for the pair's
-    ``k``: two runs that share frames 0-12 and then see frame 13 (m = 1) or 14 (m = 2), both
+    the last posed frame, as measured by their own pairs over ``k - m`` intervals and carried on
+    over the pair's ``k`` (``(k / (k - m))^2`` times it), plus ``m^2`` times the recent changes'
+    basis for the ``m`` intervals since the last posed frame, not ``k^2`` times that basis alone:
+    two runs that share frames 0-12 and then see frame 13 (k = 4, m = 1) or 14 (k = 5, m = 2), both
     against keyframe 9, give the same measured part once it is turned back into the last posed
     frame's axes (it does not depend on the current pair; turned the other way, or taken from the
     current pair, it would differ), and it is not zero. (Before frame 20 the frame clock does not
@@ -300,9 +301,10 @@ def test_keyframe_pairs_take_the_twist_change_to_the_last_frame_as_measured(samp
         assert all(s.status == "tracked" for s in steps[1:]) and step.status == "tracked"
         assert step.ref_timestamp == seq.timestamps[9] and steps[-1].ref_timestamp == seq.timestamps[9]
         m = cfg.frame_intervals(step.timestamp - steps[-1].timestamp)
-        assert m == last - 12
+        k = cfg.frame_intervals(step.timestamp - step.ref_timestamp)
+        assert m == last - 12 and k == last - 9
         R = steps[-1].pose.rotation().between(step.pose.rotation()).matrix()  # R_last,cur
-        measured[last] = R @ (step.error_bases["latency"] - m**2 * H)[:3, :3] @ R.T
+        measured[last] = R @ (step.error_bases["latency"] - m**2 * H)[:3, :3] @ R.T / (k / (k - m)) ** 2
     assert np.trace(history) > 0
     np.testing.assert_allclose(measured[14], measured[13], rtol=1e-9, atol=1e-12 * np.abs(measured[13]).max())
     assert np.trace(measured[13]) > 0.01 * np.trace(history)

@@ -121,6 +121,26 @@ def test_latency_basis_has_the_size_of_the_delays_error():
 
 
 @pytest.mark.slow
+def test_keyframe_pairs_latency_basis_has_the_size_of_the_delays_error():
+    """Keyframe mode with a new keyframe whenever the overlap drops a little (pairs over 2-6
+    intervals), stamps 10 ms late and nothing else: over pairs against an older keyframe, the delay's
+    part of the rotation error has the mean square that the latency basis (the measured change from
+    the keyframe to the last posed frame, carried on over the whole pair, and the recent changes for
+    the intervals since) times the delay squared predicts (2.2 times it when the measured change was
+    taken as the whole pair's but for the last interval's new change)."""
+    cfg = SequenceSimulationConfig(frames=200, seed=0, stamp_latency_s=0.01, period_s=1 / 30, **CLEAN)
+    r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0},
+                                             tracking={"keyframes": True, "keyframe_ratio": 0.97}))
+    k = r.frames[:, 1] - r.frames[:, 0]
+    m = (k >= 2) & (k <= 6) & ~r.flagged
+    m[:TRUTH.sensor.twist_history + 4] = False  # the basis's history filled
+    assert m.sum() >= 50
+    delay = r.stamp_errors[m, :3]
+    predicted = np.trace(0.01**2 * r.bases["latency"][m][:, :3, :3], axis1=1, axis2=2)
+    assert 0.7 < np.mean(np.sum(delay**2, axis=1)) / np.mean(predicted) < 1.4
+
+
+@pytest.mark.slow
 def test_latency_basis_covers_the_delay_when_the_turn_axis_wanders():
     """Turns up to 6 rad/s whose axis changes within a few frames, stamps 10 ms late, nothing else:
     the mean of the recent twist changes is thin across the next change's direction, so the basis
