@@ -155,8 +155,9 @@ class IntegrityScale:
 
     On real data the depth-free and 3D-3D estimates disagree more than the per-point model says
     (its depth errors are partly systematic), by a factor that depends on the sensor. The typical
-    pair is taken as consistent: the scale is the median of the raw statistics of the last
-    ``window`` pairs over the median of chi2(6), and :meth:`normalise` divides by it, so a typical
+    pair is taken as consistent: the scale is the median of the statistics of the last ``window``
+    pairs (each as the odometry gives it: on the scale of one frame interval, :func:`per_span`) over
+    the median of chi2(6), and :meth:`normalise` divides by it, so a typical
     pair reads about chi2(6) and a pair whose depth-free estimates disagree far more than the
     run's usual stands out. The first pairs of a run set the scale and are not flagged.
     """
@@ -176,7 +177,7 @@ class IntegrityScale:
         return statistic / scale if scale > 0 else 0.0
 
     def add(self, statistic: float) -> None:
-        """Count a kept pair's raw statistic in the run's scale."""
+        """Count a kept pair's statistic in the run's scale."""
         if np.isfinite(statistic):
             if len(self._values) == self._values.maxlen:  # the oldest value leaves the window
                 del self._ascending[bisect.bisect_left(self._ascending, self._values[0])]

@@ -621,7 +621,8 @@ class VisualOdometry(DeprecatedStepAccess):
     def self_calibration(self) -> dict:
         """What the run learnt about its sensor without ground truth: the frame clock's period (s),
         the scatter of the stamps around it (s.d. of the clock offsets, s), the integrity
-        statistic's scale (median over the run's pairs / median of chi2(6)) and the share of the
+        statistic's scale (median over the run's pairs, each on the scale of one frame interval,
+        / median of chi2(6)) and the share of the
         twist changes' basis spread over all axes (:class:`~covo_gtsam.calibration.TwistChanges`)."""
         offsets = self._placed_offsets
         return {"frame_period_s": self._clock.period_s,

@@ -211,5 +211,5 @@ def test_after_a_bad_depth_image_keyframe_mode_takes_no_twist_from_the_flagged_f
     assert bad.sum() >= 15 and after.sum() >= 15
     assert np.sqrt(np.mean(np.sum(r["err"][bad, 3:] ** 2, axis=1))) > 0.05  # gross errors
     assert r["nees_6"][bad].max() < 100
-    assert r["flagged"][bad].mean() >= 0.7 and r["flagged"][~bad].mean() <= 0.02
+    assert r["flagged"][bad].mean() >= 0.6 and r["flagged"][~bad].mean() <= 0.02  # 13 of 17 (10 before)
     assert nt[after].mean() < 1.4 * nt[~bad & ~after].mean(), (nt[after].mean(), nt[~bad & ~after].mean())

@@ -283,8 +283,10 @@ def test_keyframe_pairs_take_the_twist_change_to_the_last_frame_as_measured(samp
     two runs that share frames 0-12 and then see frame 13 (k = 4, m = 1) or 14 (k = 5, m = 2), both
     against keyframe 9, give the same measured part once it is turned back into the last posed
     frame's axes (it does not depend on the current pair; turned the other way, or taken from the
-    current pair, it would differ), and it is not zero. (Before frame 20 the frame clock does not
-    move the poses, so the bases are as built.)"""
+    current pair, it would differ); it is the keyframe's and frame 12's own twists' change with
+    their noise taken off (the size of ``(k / (k - m))^2`` pinned), and it is not zero. (Before
+    frame 20 the frame clock does not move the poses, so the bases are as built.)"""
+    from covo_gtsam.calibration import known_change_basis
     from covo_gtsam.datasets.tum import TumSequence
 
     seq = TumSequence(sample_dir)
@@ -295,6 +297,10 @@ def test_keyframe_pairs_take_the_twist_change_to_the_last_frame_as_measured(samp
         vo = VisualOdometry(seq.camera_name, cfg)
         steps = [vo.register_frame(*frames[i]) for i in range(13)]
         H = vo._twist_changes.basis()
+        kf, prev = steps[9], steps[12]
+        spans = vo._posed_twists  # what the two frames' own twists were taken over, and their noise
+        change = known_change_basis(kf.pose.between(prev.pose).matrix(), kf.velocity, prev.velocity,
+                                    spans[kf.timestamp].noise, spans[prev.timestamp].noise)[:3, :3]
         assert history is None or np.array_equal(H, history)
         history = H
         step = vo.register_frame(*frames[last])
@@ -305,6 +311,7 @@ def test_keyframe_pairs_take_the_twist_change_to_the_last_frame_as_measured(samp
         assert m == last - 12 and k == last - 9
         R = steps[-1].pose.rotation().between(step.pose.rotation()).matrix()  # R_last,cur
         measured[last] = R @ (step.error_bases["latency"] - m**2 * H)[:3, :3] @ R.T / (k / (k - m)) ** 2
+        np.testing.assert_allclose(measured[last], change, rtol=1e-6, atol=1e-9 * np.abs(change).max())
     assert np.trace(history) > 0
     np.testing.assert_allclose(measured[14], measured[13], rtol=1e-9, atol=1e-12 * np.abs(measured[13]).max())
     assert np.trace(measured[13]) > 0.01 * np.trace(history)

@@ -126,8 +126,9 @@ def test_keyframe_pairs_latency_basis_has_the_size_of_the_delays_error():
     intervals), stamps 10 ms late and nothing else: over pairs against an older keyframe, the delay's
     part of the rotation error has the mean square that the latency basis (the measured change from
     the keyframe to the last posed frame, carried on over the whole pair, and the recent changes for
-    the intervals since) times the delay squared predicts (2.2 times it when the measured change was
-    taken as the whole pair's but for the last interval's new change)."""
+    the intervals since) times the delay squared predicts: 0.93-0.98 over seeds 0-3 (1.64-1.84 when
+    the measured change was taken as the whole pair's but for the last interval's new change, 1.18-1.40
+    with k^2 times the recent changes alone, 1.40 for this seed)."""
     cfg = SequenceSimulationConfig(frames=200, seed=0, stamp_latency_s=0.01, period_s=1 / 30, **CLEAN)
     r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0},
                                              tracking={"keyframes": True, "keyframe_ratio": 0.97}))
@@ -137,7 +138,7 @@ def test_keyframe_pairs_latency_basis_has_the_size_of_the_delays_error():
     assert m.sum() >= 50
     delay = r.stamp_errors[m, :3]
     predicted = np.trace(0.01**2 * r.bases["latency"][m][:, :3, :3], axis1=1, axis2=2)
-    assert 0.7 < np.mean(np.sum(delay**2, axis=1)) / np.mean(predicted) < 1.4
+    assert 0.75 < np.mean(np.sum(delay**2, axis=1)) / np.mean(predicted) < 1.2
 
 
 @pytest.mark.slow
