@@ -62,8 +62,8 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance",
-           "twist_change", "known_change_basis", "latency_basis", "TwistChanges", "span_basis", "sensor_covariance", "log_likelihood",
-           "fit_sensor_terms", "MIN_SPAN_PAIRS", "span_fit_pairs", "fit_span_factor"]
+           "twist_change", "known_change_basis", "latency_basis", "TwistChanges", "span_basis", "sensor_covariance",
+           "log_likelihood", "fit_sensor_terms", "MIN_SPAN_PAIRS", "span_fit_pairs", "fit_span_factor"]
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
@@ -158,15 +158,20 @@ def _change_and_noise(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: n
     return twist_change(T_ref_cur, twist_ref, twist_cur), noise_cur + Ad @ noise_ref @ Ad.T
 
 
+def _positive_part(M: np.ndarray) -> np.ndarray:
+    """The symmetric matrix ``M`` with its negative eigenvalues set to 0 (positive semidefinite)."""
+    w, U = np.linalg.eigh(M)
+    return (U * np.clip(w, 0.0, None)) @ U.T
+
+
 def known_change_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray, noise_ref: np.ndarray,
                        noise_cur: np.ndarray) -> np.ndarray:
     """Basis (6, 6) of the ``latency`` term for a change of the twist that was measured: ``b b^T - N``
     (:func:`twist_change`, ``N`` its estimation noise from the twists' noise covariances (6, 6)),
     rotation block, clipped to positive semidefinite; as one change of :class:`TwistChanges`."""
     b, noise = _change_and_noise(T_ref_cur, twist_ref, twist_cur, noise_ref, noise_cur)
-    w, U = np.linalg.eigh(np.outer(b[:3], b[:3]) - noise[:3, :3])
     out = np.zeros((6, 6))
-    out[:3, :3] = (U * np.clip(w, 0.0, None)) @ U.T
+    out[:3, :3] = _positive_part(np.outer(b[:3], b[:3]) - noise[:3, :3])
     return out
 
 
@@ -242,8 +247,7 @@ class TwistChanges:
         if not self._changes:
             self._mean = np.zeros((6, 6))
             return
-        w, U = np.linalg.eigh(self._sum / len(self._changes))
-        self._mean = (U * np.clip(w, 0.0, None)) @ U.T
+        self._mean = _positive_part(self._sum / len(self._changes))
 
     def basis(self) -> np.ndarray:
         """6x6 basis (tangent ``[omega, v]``, (rad/s)^2 blocks) for the next pair."""

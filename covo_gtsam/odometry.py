@@ -551,7 +551,7 @@ class VisualOdometry(DeprecatedStepAccess):
             change_cov = k**2 * history
             bases["latency"] = change_cov
         else:
-            measured, m, _ = known
+            measured, m, m_ref = known  # m_ref: the intervals the keyframe's own twist was taken over
             change_cov = m**2 * history  # the current frame's twist was taken over these m intervals
             bases["latency"] = (k / max(k - m, 1)) ** 2 * measured + change_cov
         # a frame's stamp keeps its full jitter until the frame clock places it, and then the
@@ -569,15 +569,19 @@ class VisualOdometry(DeprecatedStepAccess):
             # keyframe's twist, its own pair's mean, by as much over the intervals it was taken
             # over; without a previous pair, by half of the twist itself (both frames)
             readout, height = self.config.sensor.rolling_shutter_s, self.camera.height
-            B = rolling_shutter_basis(G_cur, X_cur, row_time_offsets(pairs.uv_cur[:, 1], height, readout))
-            B_ref = rolling_shutter_basis(G_ref, X_ref, row_time_offsets(pairs.uv_ref[:, 1], height, readout))
+
+            def response(G, X, uv):  # of a frame's points to an error of its compensation's twist
+                return rolling_shutter_basis(G, X, row_time_offsets(uv[:, 1], height, readout))
+
+            B = response(G_cur, X_cur, pairs.uv_cur)
             if _trusted_velocity(ref_step) is None:
-                u = (B + B_ref) @ (0.5 * velocity)
+                u = (B + response(G_ref, X_ref, pairs.uv_ref)) @ (0.5 * velocity)
                 bases["rolling_shutter"] = np.outer(u, u)
             else:
                 bases["rolling_shutter"] = 0.25 * B @ change_cov @ B.T
                 if known is not None:
-                    bases["rolling_shutter"] += 0.25 * known[2] ** 2 * B_ref @ history @ B_ref.T
+                    B_ref = response(G_ref, X_ref, pairs.uv_ref)
+                    bases["rolling_shutter"] += 0.25 * m_ref**2 * B_ref @ history @ B_ref.T
         return bases
 
     def _known_twist_change(self, T: gtsam.Pose3, ref_step: OdometryStep, timestamp: float
