@@ -34,6 +34,11 @@ physical size (:data:`ERROR_TERMS`):
   (:class:`TwistChanges`), not this pair's; against an older keyframe the change from the keyframe
   to the last posed frame was measured by their own pairs (:func:`known_change_basis`, carried on
   over the pair) and only a new change since comes from that mean;
+* ``depth_jump`` (dimensionless): the depth images of the pair's frames taken a whole number ``n`` of
+  depth-frame periods apart relative to their colour images (the nearest depth image switched to
+  its neighbour: :func:`~covo_gtsam.frame_errors.depth_period_jump`), ``B = b b^T`` with
+  ``b = (J / 2)(u_cur - u_ref)``, ``J = n P`` and ``u_f`` the frame's ``depth_time`` basis per second;
+  a prior held at 1 (the change is a whole period, not a fitted share of one);
 * ``stamp_jitter`` (s): like ``timing``, the jitter of the stamps around the camera's regular
   clock: in full for a frame the frame clock has not placed yet (the first frames of a run), and
   ``1/n`` of its variance for a frame placed by a clock fitted to ``n`` stamps (the uncertainty of
@@ -68,12 +73,12 @@ __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
                "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s",
-               "latency": "latency_sigma_s", "span": "span_factor"}
+               "latency": "latency_sigma_s", "span": "span_factor", "depth_jump": "depth_jump_factor"}
 #: The terms of the default model fitted on consecutive pairs (``stamp_jitter`` is a prior and ``span``
 #: needs longer pairs; docs/cross_validation.md).
 DEFAULT_TERMS = ("timing", "rolling_shutter", "latency", "depth_scale", "depth_time")
 #: Terms held at their configured value (a prior) when the others are fitted.
-PRIOR_TERMS = ("stamp_jitter",)
+PRIOR_TERMS = ("stamp_jitter", "depth_jump")
 #: Fewest pairs over more than one interval the ``span`` term is fitted on (:func:`fit_span_factor`).
 MIN_SPAN_PAIRS = 10
 

@@ -145,6 +145,10 @@ class SensorConfig:
                                       "fraction", "non-negative", maximum=1.0)
     depth_time_factor: float = number(0.31, "error of the colour-depth time offset, times the stamped offset "
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
+    depth_jump_factor: float = number(1.0, "the depth image read whole depth periods earlier or later than at the "
+                                      "pair's other frame (its nearest depth image switched to a neighbour): this "
+                                      "times that change (frame-level term, a prior; 1: the whole change)", "factor",
+                                      "non-negative", maximum=100.0)
     span_factor: float = number(0.208, "translation error per frame interval that persists over a pair's intervals "
                                 "beyond the first, times the camera's recent translation per interval (frame-level "
                                 "term; 0 for consecutive pairs)", "factor", "non-negative", maximum=100.0)

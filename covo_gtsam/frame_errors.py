@@ -14,6 +14,10 @@ Terms (tangent ``[omega, v]``, right perturbation; docs/derivation.md):
 * colour-depth time: the depth image is taken ``offset_s`` after the colour image, so each point
   is moved along its ray by its depth rate, ``dX_i = (X_i / Z_i) dZ_i/dt * d``: a known ``d`` is
   compensated (:func:`depth_time_shift`); an error in it is this term;
+* depth-period jump: the depth images of the pair's two frames are read a whole number of depth
+  periods apart in time relative to their colour images (:func:`depth_period_jump`); with each
+  frame's ``u_f = sum_i G_i (X_i/Z_i) dZ_i/dt``, a change ``J`` of the offset moves the pair by
+  ``(J / 2)(u_cur - u_ref)`` beyond what a common offset does;
 * rolling-shutter residual: the compensation uses the camera's twist at the frame; an error
   ``dtwist`` moves point ``i`` (captured ``d_i`` s after the stamp) by
   ``d_i (domega x X_i + dv) = d_i [-[X_i]x, I] dtwist``.
@@ -67,6 +71,19 @@ def depth_time_basis(G: np.ndarray, X: np.ndarray, twist: np.ndarray) -> np.ndar
     """``B`` (6,) of an error in a frame's colour-depth time offset: ``sum_i G_i (X_i/Z_i) dZ_i/dt``
     (per second of offset error)."""
     return (G @ ((X / X[:, 2:3]) * depth_rates(X, twist)[:, None])[:, :, None]).sum(axis=0)[:, 0]
+
+
+def depth_period_jump(offset_ref_s: float, offset_cur_s: float, period_s: float) -> float:
+    """The change (s) of the colour-depth capture offset from a pair's reference frame to its current
+    frame in whole depth-frame periods: ``period_s * round((offset_cur_s - offset_ref_s) / period_s)``
+    (offsets: depth minus colour stamp, s). Two streams on clocks of slightly different periods drift
+    apart, and where the offset nears half a period the nearest depth image of a colour image switches
+    to its neighbour, from frame to frame as the stamps scatter: the depth is then read a whole period
+    earlier or later. The stamps scatter by milliseconds around the captures, so only whole periods are
+    certain; 0 for a camera whose depth and colour images come together."""
+    if not period_s > 0:
+        return 0.0
+    return float(period_s * np.round((offset_cur_s - offset_ref_s) / period_s))
 
 
 def rolling_shutter_basis(G: np.ndarray, X: np.ndarray, row_offsets_s: np.ndarray) -> np.ndarray:

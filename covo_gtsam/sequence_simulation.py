@@ -11,7 +11,11 @@ with the error sources of a real unsynchronised RGB-D camera, each with a stated
 * a rolling shutter: row ``v`` of a colour image is captured ``readout_s (v - H/2) / H`` after the
   frame's capture time;
 * the depth image taken ``depth_offset_s`` later than the colour image (uniform per frame in the
-  given range; the depth rows with the same readout);
+  given range; the depth rows with the same readout), or, with ``depth_period_s``, depth images
+  captured on a clock of their own (that period, a random phase, stamped with the same latency and
+  their own jitter), each colour frame taking the depth image whose stamp is nearest its own: the
+  offset drifts by the difference of the periods per frame and, near half a period, the nearest
+  depth image switches to its neighbour from frame to frame, as in the TUM freiburg1 sequences;
 * pixel noise ``pixel_sigma`` (px) and the Kinect depth model times ``depth_noise_scale``;
 * a depth error shared by all points of a frame: the depths scaled by ``1 + e``,
   ``e ~ N(0, depth_scale_sigma^2)`` per frame;
@@ -52,6 +56,7 @@ class SequenceSimulationConfig:
     stamp_latency_s: float = 0.0
     readout_s: float = 0.025
     depth_offset_s: tuple[float, float] = (0.0, 0.015)
+    depth_period_s: float | None = None
     pixel_sigma: float = 1.0
     depth_noise_scale: float = 1.0
     depth_scale_sigma: float = 0.002
@@ -88,6 +93,9 @@ class SequenceSimulationResult:
     stamp_errors: np.ndarray | None = field(default=None, repr=False)
     #: which frames (K,) are bad frames
     bad_frames: np.ndarray | None = field(default=None, repr=False)
+    #: each frame's stamped colour-depth offset (K,: depth minus colour stamp, s; the true one
+    #: unless ``depth_period_s`` is set)
+    depth_offsets: np.ndarray | None = field(default=None, repr=False)
 
     def nees(self, good_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """NEES of translation and rotation (3 dof each) of the pairs (without bad ones by default)."""
@@ -200,9 +208,12 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         stamp_offsets = stamps - captures
     bad = rng.uniform(size=cfg.frames) < cfg.bad_frame_rate
     bad[:2] = False  # the run's first pairs set the integrity scale
-    steps, frame_bad = [], []
+    clocked = None if cfg.depth_period_s is None else _depth_clock(rng, cfg, captures, stamps)
+    steps, frame_bad, stamped = [], [], []
     for k in range(cfg.frames):
-        offset = rng.uniform(*cfg.depth_offset_s) + (cfg.bad_frame_offset_s if bad[k] else 0.0)
+        offset = rng.uniform(*cfg.depth_offset_s) if clocked is None else clocked[0][k]
+        stamped.append(offset if clocked is None else clocked[1][k])
+        offset += cfg.bad_frame_offset_s if bad[k] else 0.0
         uv, z, valid = _observe(traj, Pw, captures[k], cfg.readout_s, camera, offset)
         idx = np.flatnonzero(valid)
         uv_m = uv[idx] + rng.normal(0.0, cfg.pixel_sigma, size=(len(idx), 2))
@@ -214,7 +225,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         frame = FrameData(
             features=Features(uv_m, descriptors[idx]), depth=np.zeros((1, 1), np.float32),
             points=camera.backproject(uv_m, z_m), covariances=noise.point_covariances(camera, uv_m, z_m),
-            valid=np.ones(n, bool), depths=z_m, uv_undistorted=uv_m, theta=np.zeros(n), depth_offset=offset)
+            valid=np.ones(n, bool), depths=z_m, uv_undistorted=uv_m, theta=np.zeros(n), depth_offset=stamped[k])
         steps.append(vo.register_frame(frame, timestamp=float(stamps[k])))
         frame_bad.append(bad[k])
 
@@ -242,4 +253,17 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.has_pose), config=cfg,
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool),
         frames=np.array(frames, int).reshape(-1, 2), bad_frames=bad, capture_truth=T_captures,
-        stamp_errors=relative_pose_tangent_errors(T_captures, np.array(T_stamps).reshape(-1, 4, 4)))
+        stamp_errors=relative_pose_tangent_errors(T_captures, np.array(T_stamps).reshape(-1, 4, 4)),
+        depth_offsets=np.array(stamped))
+
+
+def _depth_clock(rng: np.random.Generator, cfg: SequenceSimulationConfig, captures: np.ndarray,
+                 stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depth images on their own clock (``cfg.depth_period_s``, random phase; stamped with the colour
+    stamps' latency and jitter), each colour frame taking the one with the nearest stamp: each
+    frame's true and stamped colour-depth offsets (K,), s."""
+    n = int(np.ceil((captures[-1] + cfg.period_s) / cfg.depth_period_s)) + 2
+    depth_captures = rng.uniform(0.0, cfg.depth_period_s) - cfg.depth_period_s + np.arange(n) * cfg.depth_period_s
+    depth_stamps = depth_captures + cfg.stamp_latency_s + rng.normal(0.0, cfg.stamp_jitter_s, n)
+    nearest = np.argmin(np.abs(depth_stamps[None, :] - stamps[:, None]), axis=1)
+    return depth_captures[nearest] - captures, depth_stamps[nearest] - stamps

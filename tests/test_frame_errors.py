@@ -3,9 +3,11 @@ against Monte Carlo draws of the frame-level errors."""
 
 import gtsam
 import numpy as np
+import pytest
 
 from covo_gtsam.estimator import estimate_relative_pose
 from covo_gtsam.frame_errors import (
+    depth_period_jump,
     depth_scale_basis,
     depth_time_basis,
     depth_time_shift,
@@ -116,3 +118,26 @@ def test_rolling_shutter_basis_is_the_response_to_a_twist_error():
     r = estimate_relative_pose(X0, moved, Q0, Q1, initial=res.pose)
     actual = gtsam.Pose3.Logmap(res.pose.between(r.pose))
     assert np.linalg.norm(actual - B @ dtw) < 0.05 * np.linalg.norm(B @ dtw)
+
+
+def test_depth_period_jump_counts_the_whole_periods_the_depth_image_moved_by():
+    """Colour and depth images on clocks 0.5 % apart, stamps jittered by 2 ms, each colour frame
+    taking the depth image with the nearest stamp: from the stamps alone, the jump is the change of
+    the true capture offset between two frames to within the clocks' drift, including where the
+    association switches back and forth near half a period."""
+    rng = np.random.default_rng(4)
+    P, Pd, n = 1 / 30, 1.005 / 30, 600
+    colour = np.arange(n) * P
+    depth = rng.uniform(0, Pd) - Pd + np.arange(n + 3) * Pd
+    colour_stamps, depth_stamps = colour + rng.normal(0, 0.002, n), depth + rng.normal(0, 0.002, n + 3)
+    nearest = np.argmin(np.abs(depth_stamps[None, :] - colour_stamps[:, None]), axis=1)
+    true_offset, stamped = depth[nearest] - colour, depth_stamps[nearest] - colour_stamps
+    for gap in (1, 5):
+        change = true_offset[gap:] - true_offset[:-gap]
+        jumps = np.array([depth_period_jump(a, b, P) for a, b in zip(stamped[:-gap], stamped[gap:])])
+        assert np.all(np.abs(jumps - change) <= (gap + 1) * (Pd - P) + 1e-9)  # the drift over the gap
+        assert np.sum(np.abs(jumps) > P / 2) >= 10  # the association switched, both ways
+        assert np.any(jumps > 0) and np.any(jumps < 0)
+    assert depth_period_jump(0.004, 0.015, P) == 0.0  # the stamps' scatter alone is no jump
+    assert depth_period_jump(0.016, -0.017, P) == pytest.approx(-P)
+    assert depth_period_jump(0.0, 0.02, 0.0) == 0.0  # no period: no jump

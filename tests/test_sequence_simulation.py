@@ -177,3 +177,26 @@ def test_a_flagged_pair_does_not_spoil_the_next_pair():
         nt = nees(r.errors[:, 3:], r.covariances[:, 3:, 3:])
         assert (after == 2).sum() >= 8
         assert nt[after == 2].mean() <= 2.0 * nt[after > 3].mean()
+
+
+@pytest.mark.slow
+def test_depth_period_jump_term_covers_a_depth_image_read_a_period_away():
+    """Depth images on a clock of their own, 0.5 % slower than the colour clock: the offset drifts
+    through half a period, where the nearest depth image switches to its neighbour from frame to
+    frame, and a pair's two depth images are read a whole period apart. No other error source but
+    the stamps' jitter (which makes the switching), pixel and depth noise; the integrity check off,
+    so the covariance is the terms' own. Without the jump term those pairs' errors are tens of
+    times what their covariance says; with it they are near the other pairs'."""
+    period = 1 / 30
+    cfg = SequenceSimulationConfig(frames=300, seed=0, depth_period_s=1.005 * period, max_angular_speed=1.0,
+                                   **{**CLEAN, "stamp_jitter_s": 0.002, "depth_offset_s": (0.0, 0.0)})
+    anees = {}
+    for factor in (0.0, 1.0):
+        r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0, "depth_jump_factor": factor,
+                                                         "integrity_threshold": 1e12}))
+        jump = np.abs(np.diff(r.depth_offsets[r.frames], axis=1)[:, 0]) > period / 2
+        nt, _ = r.nees(good_only=False)
+        anees[factor] = nt[jump].mean(), nt[~jump].mean()
+        assert jump.sum() >= 10 and r.lost == 0
+    assert anees[0.0][0] > 10 * anees[0.0][1]
+    assert anees[1.0][0] < 3 * anees[1.0][1]
