@@ -212,8 +212,10 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     steps, frame_bad, stamped = [], [], []
     for k in range(cfg.frames):
         offset = rng.uniform(*cfg.depth_offset_s) if clocked is None else clocked[0][k]
-        stamped.append(offset if clocked is None else clocked[1][k])
-        offset += cfg.bad_frame_offset_s if bad[k] else 0.0
+        stamp = offset if clocked is None else clocked[1][k]
+        if bad[k]:  # stamped as taken then
+            offset, stamp = offset + cfg.bad_frame_offset_s, stamp + cfg.bad_frame_offset_s
+        stamped.append(stamp)
         uv, z, valid = _observe(traj, Pw, captures[k], cfg.readout_s, camera, offset)
         idx = np.flatnonzero(valid)
         uv_m = uv[idx] + rng.normal(0.0, cfg.pixel_sigma, size=(len(idx), 2))
