@@ -5,6 +5,7 @@ import gtsam
 import numpy as np
 import pytest
 
+from covo_gtsam.camera import Camera
 from covo_gtsam.estimator import estimate_relative_pose
 from covo_gtsam.frame_errors import (
     depth_period_jump,
@@ -141,3 +142,43 @@ def test_depth_period_jump_counts_the_whole_periods_the_depth_image_moved_by():
     assert depth_period_jump(0.004, 0.015, P) == 0.0  # the stamps' scatter alone is no jump
     assert depth_period_jump(0.016, -0.017, P) == pytest.approx(-P)
     assert depth_period_jump(0.0, 0.02, 0.0) == 0.0  # no period: no jump
+
+
+def test_a_depth_image_a_period_away_moves_the_pair_by_the_jump_basis():
+    """A camera turning at 1 rad/s: the reference frame's depths read 16.5 ms late and the current
+    frame's 16.8 ms early (the nearest depth image switched to its neighbour between them). The
+    estimate re-solved on the depths so read (gtsam's exponential map, not the rate formula) moves
+    by (J/2)(u_cur - u_ref) plus the small common part; the jump part alone is most of it, and with
+    the reference's sign turned or the half left out it is not."""
+    rng = np.random.default_rng(2)
+    camera = Camera.preset("fr3")
+    uv = np.column_stack([rng.uniform(0, camera.width, 300), rng.uniform(0, camera.height, 300)])
+    world = camera.backproject(uv, rng.uniform(1.0, 4.0, 300))  # the reference camera at t = 0
+    twist, P = np.array([0.3, 1.0, -0.2, 0.05, 0.02, 0.1]), 1 / 30
+
+    def seen(t, late=0.0):  # points in the camera at t, their depths read `late` s later, on the same rays
+        X = np.array([gtsam.Pose3.Expmap(twist * t).transformTo(x) for x in world])
+        Z = np.array([gtsam.Pose3.Expmap(twist * (t + late)).transformTo(x)[2] for x in world])
+        return X / X[:, 2:3] * Z[:, None]
+
+    X0, X1 = seen(0.0), seen(P)
+    model = PointNoiseModel()
+    Q0 = model.point_covariances(camera, camera.project(X0), X0[:, 2])
+    Q1 = model.point_covariances(camera, camera.project(X1), X1[:, 2])
+    T = gtsam.Pose3.Expmap(twist * P)
+    G0, G1 = transfer_gains(T.rotation().matrix(), T.translation(), X0, X1, Q0, Q1)
+    u_ref, u_cur = depth_time_basis(G0, X0, twist), depth_time_basis(G1, X1, twist)
+    d_ref, d_cur = 0.0165, -0.0168
+    J = depth_period_jump(d_ref, d_cur, P)
+    assert J == pytest.approx(-P)
+    base = estimate_relative_pose(X0, X1, Q0, Q1, initial=T)
+    moved = estimate_relative_pose(seen(0.0, d_ref), seen(P, d_cur), Q0, Q1, initial=T)
+    actual = gtsam.Pose3.Logmap(base.pose.between(moved.pose))
+    jump = 0.5 * J * (u_cur - u_ref)
+    common = 0.5 * (d_ref + d_cur) * (u_ref + u_cur)
+    size = np.linalg.norm(actual)
+    assert np.linalg.norm(actual[3:]) > 1e-3  # millimetres: the change is not negligible
+    assert np.linalg.norm(actual - jump - common) < 0.02 * size
+    assert np.linalg.norm(actual - jump) < 0.1 * size
+    for wrong in (0.5 * J * (u_cur + u_ref), J * (u_cur - u_ref), 0.25 * J * (u_cur - u_ref)):
+        assert np.linalg.norm(actual - wrong) > 0.4 * size
