@@ -15,9 +15,10 @@ Terms (tangent ``[omega, v]``, right perturbation; docs/derivation.md):
   is moved along its ray by its depth rate, ``dX_i = (X_i / Z_i) dZ_i/dt * d``: a known ``d`` is
   compensated (:func:`depth_time_shift`); an error in it is this term;
 * depth-period jump: the depth images of the pair's two frames are read a whole number of depth
-  periods apart in time relative to their colour images (:func:`depth_period_jump`); with each
-  frame's ``u_f = sum_i G_i (X_i/Z_i) dZ_i/dt``, a change ``J`` of the offset moves the pair by
-  ``(J / 2)(u_cur - u_ref)`` beyond what a common offset does;
+  periods apart in time relative to their colour images (:func:`depth_period_jump`); a change ``J``
+  of the offset moves the pair, beyond what a common offset does, as the current frame's depths read
+  ``J/2`` later and the reference's ``J/2`` earlier would (:func:`depth_read_change`: each point's
+  own depth change and the depth image's change at the fixed pixel), ``sum_f sum_i G_i (X_i/Z_i) dz_i``;
 * rolling-shutter residual: the compensation uses the camera's twist at the frame; an error
   ``dtwist`` moves point ``i`` (captured ``d_i`` s after the stamp) by
   ``d_i (domega x X_i + dv) = d_i [-[X_i]x, I] dtwist``.
@@ -70,7 +71,7 @@ def depth_time_shift(X: np.ndarray, twist: np.ndarray, offset_s: float) -> np.nd
 def depth_time_basis(G: np.ndarray, X: np.ndarray, twist: np.ndarray) -> np.ndarray:
     """``B`` (6,) of an error in a frame's colour-depth time offset: ``sum_i G_i (X_i/Z_i) dZ_i/dt``
     (per second of offset error)."""
-    return (G @ ((X / X[:, 2:3]) * depth_rates(X, twist)[:, None])[:, :, None]).sum(axis=0)[:, 0]
+    return depth_change_basis(G, X, depth_rates(X, twist))
 
 
 def depth_period_jump(offset_ref_s: float, offset_cur_s: float, period_s: float) -> float:
@@ -84,6 +85,29 @@ def depth_period_jump(offset_ref_s: float, offset_cur_s: float, period_s: float)
     if not period_s > 0:
         return 0.0
     return float(period_s * np.round((offset_cur_s - offset_ref_s) / period_s))
+
+
+def depth_read_change(depth: np.ndarray, uv: np.ndarray, X: np.ndarray, twist: np.ndarray, shift_s: float,
+                      fx: float, fy: float) -> np.ndarray:
+    """Change (N,) of the depth read at pixels ``uv`` (N, 2) had the depth image ``depth`` (H, W;
+    metres, 0 = none) been taken ``shift_s`` later, for a camera moving with body twist ``[omega, v]``
+    (rad/s, m/s), metres: each point's own depth change ``dZ/dt shift_s`` plus the image's change at
+    the fixed pixel, ``D(p - u' shift_s) - D(p)`` read from ``depth`` (``u'`` the point's image
+    velocity, :func:`~covo_gtsam.geometry.image_velocities`; nearest pixel), which beside a depth edge
+    is the jump to the other surface. The image part is 0 where either pixel has no depth. ``X``
+    (N, 3): the points, camera frame at their image's time."""
+    from .geometry import image_velocities
+    from .noise import nearest_depth
+
+    z0, ok0 = nearest_depth(depth, uv)
+    z1, ok1 = nearest_depth(depth, uv - image_velocities(X, twist, fx, fy) * shift_s)
+    return depth_rates(X, twist) * shift_s + np.where(ok0 & ok1, z1 - z0, 0.0)
+
+
+def depth_change_basis(G: np.ndarray, X: np.ndarray, dz: np.ndarray) -> np.ndarray:
+    """``B`` (6,) of a frame's depths each changed by ``dz`` (N,, metres) along their rays:
+    ``sum_i G_i (X_i/Z_i) dz_i``."""
+    return (G @ ((X / X[:, 2:3]) * dz[:, None])[:, :, None]).sum(axis=0)[:, 0]
 
 
 def rolling_shutter_basis(G: np.ndarray, X: np.ndarray, row_offsets_s: np.ndarray) -> np.ndarray:

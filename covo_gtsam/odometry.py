@@ -23,8 +23,8 @@ from .config import MAX_GAP_S, OdometryConfig
 from .covariance import compose_covariance
 from .errors import ConfigError, CovoError, EstimationError, InputError
 from .estimator import RelativePoseResult, estimate_relative_pose
-from .frame_errors import (depth_period_jump, depth_scale_basis, depth_time_basis, depth_time_shift,
-                           rolling_shutter_basis, transfer_gains)
+from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_change, depth_scale_basis,
+                           depth_time_basis, depth_time_shift, rolling_shutter_basis, transfer_gains)
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
@@ -559,12 +559,18 @@ class VisualOdometry(DeprecatedStepAccess):
         n_cur = self._clock.samples if self._clock_offset is not None else 0
         weights = np.array([1.0 / max(ref_step.clock_samples, 1), 1.0 / max(n_cur, 1)])
         bases["stamp_jitter"] = timing_covariance(np.stack([twist_ref, velocity]) * np.sqrt(weights)[:, None])
-        u_ref, u_cur = depth_time_basis(G_ref, X_ref, twist_ref), depth_time_basis(G_cur, X_cur, velocity)
-        h_ref, h_cur = ref.depth_offset * u_ref, frame.depth_offset * u_cur
+        h_ref = ref.depth_offset * depth_time_basis(G_ref, X_ref, twist_ref)
+        h_cur = frame.depth_offset * depth_time_basis(G_cur, X_cur, velocity)
         bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)
-        # the depth images read whole periods apart (the nearest depth image switched to a neighbour)
+        # the depth images read whole periods apart (the nearest depth image switched to a neighbour):
+        # as if the current frame's were read half the change later and the reference's half earlier
         jump = depth_period_jump(ref.depth_offset, frame.depth_offset, self.config.sensor.frame_interval_s)
-        j = 0.5 * jump * (u_cur - u_ref)
+        j = np.zeros(6)
+        if jump:
+            for fd, G, X, uv, twist, shift in ((ref, G_ref, X_ref, pairs.uv_ref, twist_ref, -0.5 * jump),
+                                               (frame, G_cur, X_cur, pairs.uv_cur, velocity, 0.5 * jump)):
+                dz = depth_read_change(fd.depth, uv, X, twist, shift, self.camera.fx, self.camera.fy)
+                j += depth_change_basis(G, X, dz)
         bases["depth_jump"] = np.outer(j, j)
         if self.config.sensor.rolling_shutter_s > 0:
             # the twist at the current frame may differ from the pair's mean by half the change of

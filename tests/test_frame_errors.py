@@ -9,6 +9,8 @@ from covo_gtsam.camera import Camera
 from covo_gtsam.estimator import estimate_relative_pose
 from covo_gtsam.frame_errors import (
     depth_period_jump,
+    depth_rates,
+    depth_read_change,
     depth_scale_basis,
     depth_time_basis,
     depth_time_shift,
@@ -182,3 +184,38 @@ def test_a_depth_image_a_period_away_moves_the_pair_by_the_jump_basis():
     assert np.linalg.norm(actual - jump) < 0.1 * size
     for wrong in (0.5 * J * (u_cur + u_ref), J * (u_cur - u_ref), 0.25 * J * (u_cur - u_ref)):
         assert np.linalg.norm(actual - wrong) > 0.4 * size
+
+
+def _plane_depth(camera: Camera, pose: gtsam.Pose3, normal: np.ndarray, offset: float) -> np.ndarray:
+    """Depth image (H, W; metres) of the plane ``normal . P = offset`` (world) seen from ``pose``
+    (T_world,cam), rendered ray by ray: an oracle independent of the code's rate formulas."""
+    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(float)
+    rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(u)], axis=-1)
+    R, o = pose.rotation().matrix(), pose.translation()
+    return (offset - normal @ o) / (rays @ (R.T @ normal))
+
+
+def test_depth_read_change_is_what_a_later_depth_image_reads_at_the_pixel():
+    """A slanted wall and a camera turning at 1 rad/s: the depth image rendered 16.7 ms later, read
+    at the same pixels, differs from the first by what depth_read_change predicts (the point's own
+    depth change and the image's change at the fixed pixel, to first order), not by the point's own
+    change alone."""
+    camera = Camera.preset("fr3")
+    normal, offset = np.array([0.4, 0.1, 1.0]) / np.linalg.norm([0.4, 0.1, 1.0]), 2.5
+    twist, shift = np.array([0.3, 1.0, -0.2, 0.05, 0.02, 0.1]), 1 / 60
+    D0 = _plane_depth(camera, gtsam.Pose3(), normal, offset)
+    D1 = _plane_depth(camera, gtsam.Pose3.Expmap(twist * shift), normal, offset)
+    rng = np.random.default_rng(5)
+    uv = np.column_stack([rng.integers(80, camera.width - 80, 300), rng.integers(80, camera.height - 80, 300)])
+    uv = uv.astype(float)
+    X = camera.backproject(uv, D0[uv[:, 1].astype(int), uv[:, 0].astype(int)])
+    actual = D1[uv[:, 1].astype(int), uv[:, 0].astype(int)] - D0[uv[:, 1].astype(int), uv[:, 0].astype(int)]
+    predicted = depth_read_change(D0, uv, X, twist, shift, camera.fx, camera.fy)
+    own = depth_rates(X, twist) * shift
+    rms = np.sqrt(np.mean(actual**2))
+    assert rms > 0.01  # centimetres
+    assert np.sqrt(np.mean((predicted - actual) ** 2)) < 0.1 * rms
+    assert np.sqrt(np.mean((own - actual) ** 2)) > 0.3 * rms  # the image's own change matters
+    hole = D0.copy()
+    hole[:, :] = 0.0  # no depth to read: only the point's own change is left
+    assert np.allclose(depth_read_change(hole, uv, X, twist, shift, camera.fx, camera.fy), own)
