@@ -36,9 +36,11 @@ physical size (:data:`ERROR_TERMS`):
   over the pair) and only a new change since comes from that mean;
 * ``depth_jump`` (dimensionless): the depth images of the pair's frames taken a whole number ``n`` of
   depth-frame periods apart relative to their colour images (the nearest depth image switched to
-  its neighbour: :func:`~covo_gtsam.frame_errors.depth_period_jump`), ``B = b b^T`` with
-  ``b = (J / 2)(u_cur - u_ref)``, ``J = n P`` and ``u_f`` the frame's ``depth_time`` basis per second;
-  a prior held at 1 (the change is a whole period, not a fitted share of one);
+  its neighbour: :func:`~covo_gtsam.frame_errors.depth_period_jump`), ``B = b b^T`` with ``b`` the
+  pair's response to the current frame's depths read ``J/2 = n P / 2`` later and the reference's
+  ``J/2`` earlier (each point's own depth change and the depth image's change at the fixed pixel,
+  :func:`~covo_gtsam.frame_errors.depth_read_change`); a prior held at 1 (the change is a whole
+  period, not a fitted share of one);
 * ``stamp_jitter`` (s): like ``timing``, the jitter of the stamps around the camera's regular
   clock: in full for a frame the frame clock has not placed yet (the first frames of a run), and
   ``1/n`` of its variance for a frame placed by a clock fitted to ``n`` stamps (the uncertainty of
