@@ -119,6 +119,7 @@ class VisualOdometry(DeprecatedStepAccess):
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
         self._clock_offset: float | None = None  # offset of the frame being registered from the frame clock
         self._placed_offsets: list[float] = []  # clock offsets of the frames the clock placed
+        self._depth_jumps = 0  # posed pairs whose depth images were read whole periods apart
         self._history = StepHistory()  # behind the deprecated steps, tracked_steps, lost_steps, trajectory()
 
     # -- front end -------------------------------------------------------------------------
@@ -337,6 +338,7 @@ class VisualOdometry(DeprecatedStepAccess):
             step.reason = "the pair's covariance is not finite and positive definite"
             return step
         step.status = StepStatus.RELATIVE_POSE
+        self._depth_jumps += bool(self._depth_jump(ref, frame))
         self._integrity_check(step, res.pose, X_ref, X_cur, pairs)
         self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         return step
@@ -564,7 +566,7 @@ class VisualOdometry(DeprecatedStepAccess):
         bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)
         # the depth images read whole periods apart (the nearest depth image switched to a neighbour):
         # as if the current frame's were read half the change later and the reference's half earlier
-        jump = depth_period_jump(ref.depth_offset, frame.depth_offset, self.config.sensor.frame_interval_s)
+        jump = self._depth_jump(ref, frame)
         j = np.zeros(6)
         if jump:
             for fd, G, X, uv, twist, shift in ((ref, G_ref, X_ref, pairs.uv_ref, twist_ref, -0.5 * jump),
@@ -593,6 +595,11 @@ class VisualOdometry(DeprecatedStepAccess):
                     B_ref = response(G_ref, X_ref, pairs.uv_ref)
                     bases["rolling_shutter"] += 0.25 * m_ref**2 * B_ref @ history @ B_ref.T
         return bases
+
+    def _depth_jump(self, ref: FrameData, frame: FrameData) -> float:
+        """The change (s) of the colour-depth offset from ``ref`` to ``frame`` in whole periods
+        (:func:`~covo_gtsam.frame_errors.depth_period_jump`): the depth images read that far apart."""
+        return depth_period_jump(ref.depth_offset, frame.depth_offset, self.config.sensor.frame_interval_s)
 
     def _known_twist_change(self, T: gtsam.Pose3, ref_step: OdometryStep, timestamp: float
                             ) -> tuple[np.ndarray, int, int] | None:
@@ -637,9 +644,12 @@ class VisualOdometry(DeprecatedStepAccess):
         the scatter of the stamps around it (s.d. of the clock offsets, s), the integrity
         statistic's scale (median over the run's pairs, each on the scale of one frame interval,
         / median of chi2(6)) and the share of the
-        twist changes' basis spread over all axes (:class:`~covo_gtsam.calibration.TwistChanges`)."""
+        twist changes' basis spread over all axes (:class:`~covo_gtsam.calibration.TwistChanges`),
+        and how many posed pairs had their depth images read whole depth periods apart (the nearest
+        depth image switched to a neighbour: the ``depth_jump`` term)."""
         offsets = self._placed_offsets
         return {"frame_period_s": self._clock.period_s,
                 "stamp_jitter_s": float(np.std(offsets)) if len(offsets) > 2 else None,
                 "integrity_scale": self._integrity.scale,
-                "twist_change_isotropic_share": self._twist_changes.share}
+                "twist_change_isotropic_share": self._twist_changes.share,
+                "depth_period_jumps": self._depth_jumps}

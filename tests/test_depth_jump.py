@@ -9,10 +9,11 @@ import pytest
 SWITCHED = range(30, 237, 12)
 
 
-def _switched_run(fr1_rpy_dir, depth_jump_factor: float) -> tuple[np.ndarray, np.ndarray]:
+def _switched_run(fr1_rpy_dir, depth_jump_factor: float) -> tuple[np.ndarray, np.ndarray, int, int]:
     """fr1_rpy with the frames of :data:`SWITCHED` given the previous frame's depth image and its
     depth stamp: translation NEES of each pair with ground truth under the reported covariance
-    (with the reference's jitter), and whether the pair's depth images are a period apart."""
+    (with the reference's jitter), whether the pair's depth images are a period apart, and of all
+    posed pairs how many are, counted here and as the run reports it."""
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.evaluation import ground_truth_lookup, reference_covariances, relative_ground_truth
     from covo_gtsam.metrics import nees, relative_pose_tangent_errors
@@ -31,8 +32,12 @@ def _switched_run(fr1_rpy_dir, depth_jump_factor: float) -> tuple[np.ndarray, np
     covs = covs + reference_covariances(seq.gt_samples)([s.ref_timestamp for s in kept], [s.timestamp for s in kept])
     err = relative_pose_tangent_errors(T_est, T_true)
     index = {t: i for i, t in enumerate(seq.timestamps)}
-    jump = np.array([(index[s.ref_timestamp] in SWITCHED) != (index[s.timestamp] in SWITCHED) for s in kept])
-    return nees(err[:, 3:], covs[:, 3:, 3:]), jump
+    def switched(s):
+        return (index[s.ref_timestamp] in SWITCHED) != (index[s.timestamp] in SWITCHED)
+
+    jump = np.array([switched(s) for s in kept])
+    posed = sum(switched(s) for s in steps if s.has_relative_pose)
+    return nees(err[:, 3:], covs[:, 3:, 3:]), jump, posed, vo.self_calibration()["depth_period_jumps"]
 
 
 @pytest.mark.slow
@@ -41,11 +46,12 @@ def test_pairs_with_a_switched_depth_image_are_covered_on_real_frames(fr1_rpy_di
     """With the jump term the pairs a period apart have translation ANEES 2.80 (other pairs 2.54);
     its basis from each point's own depth change alone, without the depth image's change at the
     fixed pixel, gave 5.21, and without the term they have 6.80."""
-    nt, jump = _switched_run(fr1_rpy_dir, 1.0)
+    nt, jump, posed, reported = _switched_run(fr1_rpy_dir, 1.0)
     assert jump.sum() >= 30
+    assert reported == posed >= jump.sum()  # metrics.json's self_calibration.depth_period_jumps
     assert nt[jump].mean() < 3.5
     assert nt[~jump].mean() < 3.5  # the term is zero there: the rest of the run as before
-    off, _ = _switched_run(fr1_rpy_dir, 0.0)
+    off, *_ = _switched_run(fr1_rpy_dir, 0.0)
     assert off[jump].mean() > 5.0  # uncovered without the term
 
 
