@@ -417,21 +417,24 @@ class VisualOdometry(DeprecatedStepAccess):
                            twist_cur: np.ndarray) -> PointPairs:
         """``pairs`` with each point's covariance grown by what the camera's motion does to it: the
         depth image's change over the frame's colour-depth offset (``noise.depth_offset_factor`` times
-        the stamped one; the depth image saw the scene shifted by the point's image velocity times
-        the offset, so the depth read at the colour keypoint may belong to a neighbouring surface:
+        the stamped one, or half the pair's depth-period jump where that is more; the depth image saw
+        the scene shifted by the point's image velocity times the offset, so the depth read at the
+        colour keypoint may belong to a neighbouring surface:
         :func:`~covo_gtsam.noise.depth_lookup_variance`, along the viewing ray) and motion blur over
         ``noise.exposure_s`` (:func:`~covo_gtsam.noise.blur_covariances`)."""
         c, exposure = self.config.noise.depth_offset_factor, self.config.noise.exposure_s
+        half_jump = 0.5 * abs(self._depth_jump(ref, frame))  # each frame's depth image that far off the pair's
         Q = []
         for fd, X, uv, Q_f, twist in ((ref, pairs.X_ref, pairs.uv_ref, pairs.Q_ref, twist_ref),
                                       (frame, pairs.X_cur, pairs.uv_cur, pairs.Q_cur, twist_cur)):
-            if not (exposure > 0 or (c > 0 and fd.depth_offset)):
+            offset = max(abs(fd.depth_offset), half_jump)
+            if not (exposure > 0 or (c > 0 and offset)):
                 Q.append(Q_f)
                 continue
             velocity = image_velocities(X, twist, self.camera.fx, self.camera.fy)
-            if c > 0 and fd.depth_offset:
+            if c > 0 and offset:
                 ray = X / X[:, 2:3]
-                lookup = depth_lookup_variance(fd.depth, uv, (velocity * (c * fd.depth_offset))[None])
+                lookup = depth_lookup_variance(fd.depth, uv, (velocity * (c * offset))[None])
                 Q_f = Q_f + lookup[:, None, None] * ray[:, :, None] * ray[:, None, :]
             if exposure > 0:
                 Q_f = Q_f + blur_covariances(X, velocity, exposure, self.camera.fx, self.camera.fy)
