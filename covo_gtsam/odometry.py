@@ -120,6 +120,8 @@ class VisualOdometry(DeprecatedStepAccess):
         self._clock_offset: float | None = None  # offset of the frame being registered from the frame clock
         self._placed_offsets: list[float] = []  # clock offsets of the frames the clock placed
         self._depth_jumps = 0  # posed pairs whose depth images were read whole periods apart
+        self._depth_clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
+        self._depth_stamped = False  # a depth image stamped apart from its colour image was seen
         self._history = StepHistory()  # behind the deprecated steps, tracked_steps, lost_steps, trajectory()
 
     # -- front end -------------------------------------------------------------------------
@@ -173,6 +175,9 @@ class VisualOdometry(DeprecatedStepAccess):
         """
         t = self._place_stamp(timestamp)  # checked, and placed on the frame clock
         frame, step = self._frame_data(image, depth, t, depth_timestamp)  # step: lost if unusable
+        if frame is not None:  # the depth stream's own clock, from the depth images' stamps
+            self._depth_clock.offset(t + frame.depth_offset)
+            self._depth_stamped |= frame.depth_offset != 0.0
         keyframe = self._keyframe
         if step is None and keyframe is None:
             step = self._first_step(frame, t)
@@ -648,11 +653,15 @@ class VisualOdometry(DeprecatedStepAccess):
         statistic's scale (median over the run's pairs, each on the scale of one frame interval,
         / median of chi2(6)) and the share of the
         twist changes' basis spread over all axes (:class:`~covo_gtsam.calibration.TwistChanges`),
-        and how many posed pairs had their depth images read whole depth periods apart (the nearest
-        depth image switched to a neighbour: the ``depth_jump`` term)."""
+        how many posed pairs had their depth images read whole depth periods apart (the nearest
+        depth image switched to a neighbour: the ``depth_jump`` term), and the depth images' own
+        clock period (s; None when no depth image was stamped apart from its colour image): where it
+        differs from the colour clock's the colour-depth offset drifts by the difference per frame,
+        and a switch comes wherever the offset passes half a period."""
         offsets = self._placed_offsets
         return {"frame_period_s": self._clock.period_s,
                 "stamp_jitter_s": float(np.std(offsets)) if len(offsets) > 2 else None,
                 "integrity_scale": self._integrity.scale,
                 "twist_change_isotropic_share": self._twist_changes.share,
-                "depth_period_jumps": self._depth_jumps}
+                "depth_period_jumps": self._depth_jumps,
+                "depth_frame_period_s": self._depth_clock.period_s if self._depth_stamped else None}

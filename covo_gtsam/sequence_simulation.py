@@ -96,6 +96,8 @@ class SequenceSimulationResult:
     #: each frame's stamped colour-depth offset (K,: depth minus colour stamp, s; the true one
     #: unless ``depth_period_s`` is set)
     depth_offsets: np.ndarray | None = field(default=None, repr=False)
+    #: what the run learnt without ground truth (:meth:`VisualOdometry.self_calibration`)
+    self_calibration: dict | None = field(default=None, repr=False)
 
     def nees(self, good_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """NEES of translation and rotation (3 dof each) of the pairs (without bad ones by default)."""
@@ -256,7 +258,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool),
         frames=np.array(frames, int).reshape(-1, 2), bad_frames=bad, capture_truth=T_captures,
         stamp_errors=relative_pose_tangent_errors(T_captures, np.array(T_stamps).reshape(-1, 4, 4)),
-        depth_offsets=np.array(stamped))
+        depth_offsets=np.array(stamped), self_calibration=vo.self_calibration())
 
 
 def _depth_clock(rng: np.random.Generator, cfg: SequenceSimulationConfig, captures: np.ndarray,
