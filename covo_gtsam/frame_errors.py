@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import skew
+from .geometry import image_velocities, skew
+from .noise import nearest_depth
 from .transfer import backward_jacobians, rotate_covariances
 
 
@@ -96,9 +97,6 @@ def depth_read_change(depth: np.ndarray, uv: np.ndarray, X: np.ndarray, twist: n
     velocity, :func:`~covo_gtsam.geometry.image_velocities`; nearest pixel), which beside a depth edge
     is the jump to the other surface. The image part is 0 where either pixel has no depth. ``X``
     (N, 3): the points, camera frame at their image's time."""
-    from .geometry import image_velocities
-    from .noise import nearest_depth
-
     z0, ok0 = nearest_depth(depth, uv)
     z1, ok1 = nearest_depth(depth, uv - image_velocities(X, twist, fx, fy) * shift_s)
     return depth_rates(X, twist) * shift_s + np.where(ok0 & ok1, z1 - z0, 0.0)
