@@ -128,30 +128,33 @@ class SensorConfig:
                                          "(depth images stamped apart from the colour images)")
     correlation_factor: float = number(1.0, "kappa: multiplies the per-point covariance, for errors shared by the "
                                        "points", "factor", minimum=MIN_SCALE, maximum=MAX_SCALE)
-    frame_sigma_rot_deg: float = number(0.0617, "per-axis rotation error common to a pair, per frame interval "
+    frame_sigma_rot_deg: float = number(0.0608, "per-axis rotation error common to a pair, per frame interval "
                                         "(variance grows k times over k intervals)", "deg", "non-negative",
                                         maximum=180.0)
     frame_sigma_trans_m: float = number(0.0, "per-axis translation error common to a pair, per frame interval "
                                         "(variance grows k^2 times)", "m", "non-negative", maximum=1e3)
-    timing_sigma_s: float = number(8.99e-05, "a frame's capture-time error (frame-level term)", "s", "non-negative",
+    timing_sigma_s: float = number(0.000303, "a frame's capture-time error (frame-level term)", "s", "non-negative",
                                    maximum=1.0)
-    rolling_shutter_factor: float = number(1.85, "error of the rolling-shutter compensation's twist, times its "
+    rolling_shutter_factor: float = number(1.91, "error of the rolling-shutter compensation's twist, times its "
                                            "model (frame-level term)", "factor", "non-negative", maximum=100.0)
     stamp_jitter_s: float = number(0.002, "the stamps' jitter before the frame clock places them (frame-level "
                                    "term, a prior)", "s", "non-negative", maximum=1.0)
-    latency_sigma_s: float = number(0.00777, "the stamps' unknown common delay against the clock the poses are used "
+    latency_sigma_s: float = number(0.00684, "the stamps' unknown common delay against the clock the poses are used "
                                     "on (frame-level term)", "s", "non-negative", maximum=1.0)
-    depth_scale_sigma: float = number(0.00103, "a frame's depths all scaled by 1 + e (frame-level term)",
+    depth_scale_sigma: float = number(0.00046, "a frame's depths all scaled by 1 + e (frame-level term)",
                                       "fraction", "non-negative", maximum=1.0)
-    depth_time_factor: float = number(0.31, "error of the colour-depth time offset, times the stamped offset "
+    depth_time_factor: float = number(0.384, "error of the colour-depth time offset, times the stamped offset "
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
     depth_jump_factor: float = number(1.0, "the depth image read whole depth periods earlier or later than at the "
                                       "pair's other frame (its nearest depth image switched to a neighbour): this "
                                       "times that change (frame-level term, a prior; 1: the whole change)", "factor",
                                       "non-negative", maximum=100.0)
-    span_factor: float = number(0.208, "translation error per frame interval that persists over a pair's intervals "
+    span_factor: float = number(0.182, "translation error per frame interval that persists over a pair's intervals "
                                 "beyond the first, times the camera's recent translation per interval (frame-level "
                                 "term; 0 for consecutive pairs)", "factor", "non-negative", maximum=100.0)
+    depth_drift_pairs: int = integer(10, "recent pairs whose depth-free estimates' disagreement along the depth-scale "
+                                     "response gives the depth's drift, which each pair's translation is corrected by "
+                                     "(0: off)", 0, 10000, unit="pairs")
     twist_history: int = integer(10, "recent changes of the camera's twist the latency and rolling-shutter terms "
                                  "are taken from", 1, 10000, unit="pairs")
     integrity_threshold: float = number(50.0, "flag a pair whose integrity statistic exceeds this (about chi2(6) "

@@ -21,6 +21,7 @@ from .choices import MotionModel
 from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
 from .config import MAX_GAP_S, OdometryConfig
 from .covariance import compose_covariance
+from .depth_drift import DepthDrift, drift_along
 from .errors import ConfigError, CovoError, EstimationError, InputError
 from .estimator import RelativePoseResult, estimate_relative_pose
 from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_change, depth_scale_basis,
@@ -122,6 +123,7 @@ class VisualOdometry(DeprecatedStepAccess):
         self._depth_jumps = 0  # posed pairs whose depth images were read whole periods apart
         self._depth_clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
         self._depth_stamped = False  # a depth image stamped apart from its colour image was seen
+        self._drift = DepthDrift(self.config.sensor.depth_drift_pairs)  # the depth's drift, from the depth-free estimates
         self._history = StepHistory()  # behind the deprecated steps, tracked_steps, lost_steps, trajectory()
 
     # -- front end -------------------------------------------------------------------------
@@ -277,6 +279,7 @@ class VisualOdometry(DeprecatedStepAccess):
             self._twist_changes.clear()
             self._twist_noise = {}
             self._posed_twists = {}
+            self._drift.clear()
         if step.has_pose:
             self._last = _PosedFrame(frame, step)
             if step.status is not StepStatus.RELATIVE_POSE or not self.config.tracking.keyframes:
@@ -333,7 +336,8 @@ class VisualOdometry(DeprecatedStepAccess):
         step.velocity = None if twists is None else twists[1]
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp)
-        step.error_bases = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt, timestamp)
+        step.error_bases, b = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt,
+                                                timestamp)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -344,9 +348,28 @@ class VisualOdometry(DeprecatedStepAccess):
             return step
         step.status = StepStatus.RELATIVE_POSE
         self._depth_jumps += bool(self._depth_jump(ref, frame))
-        self._integrity_check(step, res.pose, X_ref, X_cur, pairs)
+        check = self._integrity_check(step, res.pose, X_ref, X_cur, pairs)
+        # the pose reported moves by the depth's drift; the twists stay the 3D-3D estimate's, as the
+        # next pair's rolling-shutter compensation takes them (a moved twist would change by the
+        # correction over one interval there, a spurious change of the camera's motion)
+        res = self._corrected_for_drift(step, res, check, b, dt)
         self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         return step
+
+    def _corrected_for_drift(self, step: OdometryStep, res: RelativePoseResult, check, b: np.ndarray, dt: float
+                             ) -> RelativePoseResult:
+        """``res`` with its translation moved by the depth's drift (:mod:`covo_gtsam.depth_drift`)
+        and ``step``'s covariance grown by that estimate's own: a kept pair's depth-free estimates
+        (``check``) join the drift's window first, a flagged pair's do not."""
+        if not self._drift.enabled:
+            return res
+        k = self.config.sensor.frame_intervals(dt)
+        if check is not None and not step.flagged:
+            delta = 0.5 * (check.delta_forward + check.delta_backward)
+            self._drift.add(drift_along(delta, b, step.covariance), k)
+        xi, C = self._drift.correction(k)
+        step.covariance = step.covariance + C
+        return replace(res, pose=res.pose.compose(gtsam.Pose3.Expmap(xi)))
 
     def _since_last(self, T: gtsam.Pose3, ref_step: OdometryStep, timestamp: float
                     ) -> tuple[OdometryStep, gtsam.Pose3, float] | None:
@@ -458,7 +481,8 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _integrity_check(self, step: OdometryStep, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs):
         """The pair's integrity statistic (:func:`~covo_gtsam.integrity.depth_free_check`) into
-        ``step``: quality, flag, and a flagged pair's covariance inflated."""
+        ``step``: quality, flag, and a flagged pair's covariance inflated. Returns the check (None
+        without a finite one)."""
         try:
             check = depth_free_check(T.matrix(), X_ref, X_cur, pairs.Q_ref, pairs.Q_cur,
                                      self.camera.fx, self.camera.fy, self.config.noise.pixel_sigma)
@@ -471,6 +495,8 @@ class VisualOdometry(DeprecatedStepAccess):
             step.flagged = not step.quality <= self.config.sensor.integrity_threshold
             if step.flagged:  # honest: the covariance covers the disagreement of the two depth-free estimates
                 step.covariance = check.inflate(step.covariance, step.quality)
+            return check
+        return None
 
     def _per_span(self, step: OdometryStep) -> float:
         """``step``'s raw integrity statistic on the scale of one frame interval
@@ -533,10 +559,11 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
-                     dt: float, timestamp: float) -> dict:
-        """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`); ``twists``
-        are the camera's twists at the two frames (:func:`~covo_gtsam.rolling_shutter.frame_twists`),
-        None without motion."""
+                     dt: float, timestamp: float) -> tuple[dict, np.ndarray]:
+        """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`) and its
+        response ``b`` (6,) to the current frame's depths scaled by ``1 + e`` (per unit ``e``);
+        ``twists`` are the camera's twists at the two frames
+        (:func:`~covo_gtsam.rolling_shutter.frame_twists`), None without motion."""
         M = T.matrix()
         G_ref, G_cur = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         b_ref, b_cur = depth_scale_basis(G_ref, X_ref), depth_scale_basis(G_cur, X_cur)
@@ -546,7 +573,7 @@ class VisualOdometry(DeprecatedStepAccess):
         step_m = 0.0 if recent is None else float(np.linalg.norm(recent[3:])) * self.config.sensor.frame_interval_s
         bases["span"] = span_basis(step_m, self.config.sensor.frame_intervals(dt))
         if twists is None:
-            return bases  # no motion: no timing terms
+            return bases, b_cur  # no motion: no timing terms
         twist_ref, velocity = twists
         bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
         # the covariance of the twist's change over the pair, from the pairs before this one (over k
@@ -602,7 +629,7 @@ class VisualOdometry(DeprecatedStepAccess):
                 if known is not None:
                     B_ref = response(G_ref, X_ref, pairs.uv_ref)
                     bases["rolling_shutter"] += 0.25 * m_ref**2 * B_ref @ history @ B_ref.T
-        return bases
+        return bases, b_cur
 
     def _depth_jump(self, ref: FrameData, frame: FrameData) -> float:
         """The change (s) of the colour-depth offset from ``ref`` to ``frame`` in whole periods

@@ -18,7 +18,8 @@ with the error sources of a real unsynchronised RGB-D camera, each with a stated
   depth image switches to its neighbour from frame to frame, as in the TUM freiburg1 sequences;
 * pixel noise ``pixel_sigma`` (px) and the Kinect depth model times ``depth_noise_scale``;
 * a depth error shared by all points of a frame: the depths scaled by ``1 + e``,
-  ``e ~ N(0, depth_scale_sigma^2)`` per frame;
+  ``e ~ N(0, depth_scale_sigma^2)`` per frame, plus a drift ``depth_drift * sin(2 pi t /
+  depth_drift_period_s + phase)`` (random phase; 0 by default) that carries the error over frames;
 * bad frames at rate ``bad_frame_rate``: their depth image belongs to an instant
   ``bad_frame_offset_s`` away (a depth image that was delivered with the wrong colour image).
 
@@ -60,6 +61,8 @@ class SequenceSimulationConfig:
     pixel_sigma: float = 1.0
     depth_noise_scale: float = 1.0
     depth_scale_sigma: float = 0.002
+    depth_drift: float = 0.0
+    depth_drift_period_s: float = 3.0
     bad_frame_rate: float = 0.03
     bad_frame_offset_s: float = 0.1
     max_angular_speed: float = 2.0
@@ -211,6 +214,9 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     bad = rng.uniform(size=cfg.frames) < cfg.bad_frame_rate
     bad[:2] = False  # the run's first pairs set the integrity scale
     clocked = None if cfg.depth_period_s is None else _depth_clock(rng, cfg, captures, stamps)
+    # the depths' drift: its own generator, so that the other draws stay those of a run without it
+    phase = np.random.default_rng([cfg.seed, 1]).uniform(0.0, 2 * np.pi) if cfg.depth_drift else 0.0
+    drift = cfg.depth_drift * np.sin(2 * np.pi * captures / cfg.depth_drift_period_s + phase)
     steps, frame_bad, stamped = [], [], []
     for k in range(cfg.frames):
         offset = rng.uniform(*cfg.depth_offset_s) if clocked is None else clocked[0][k]
@@ -221,7 +227,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         uv, z, valid = _observe(traj, Pw, captures[k], cfg.readout_s, camera, offset)
         idx = np.flatnonzero(valid)
         uv_m = uv[idx] + rng.normal(0.0, cfg.pixel_sigma, size=(len(idx), 2))
-        z_m = z[idx] * (1.0 + rng.normal(0.0, cfg.depth_scale_sigma))
+        z_m = z[idx] * (1.0 + rng.normal(0.0, cfg.depth_scale_sigma) + drift[k])
         z_m = z_m + rng.normal(size=len(idx)) * cfg.depth_noise_scale * noise.depth.sigma(z_m) / noise.depth.scale
         ok = z_m > 0
         idx, uv_m, z_m = idx[ok], uv_m[ok], z_m[ok]
