@@ -623,6 +623,59 @@ def persistence_table(data: Path) -> list[str]:
     return lines + [""]
 
 
+#: windows of the depth-drift correction compared (pairs; 0: off) and the chain lengths (frames)
+DRIFT_WINDOWS, DRIFT_LENGTHS = (0, 5, 10, 20, 30), (10, 30, 60, 120, 200)
+
+
+def drift_table(data: Path) -> list[str]:
+    """The depth's drift: the default model on fr1_rpy with the correction's window of 0 (off), 5,
+    10 (the default), 20 and 30 pairs, per half (pair and 30-pair chain ANEES, the chains'
+    translation RMS) and over all frames (translation RMS of chains of 10-200 pairs, ATE)."""
+    seq = TumSequence(data / "tum" / RPY)
+    lookup = ground_truth_lookup(seq)
+    jitter = reference_covariances(seq.gt_samples)
+    index = {t: i for i, t in enumerate(seq.timestamps)}
+    lines = ["## The depth's drift", "",
+             "Each pair's translation moved by the mean, over the last pairs, of the depth-free estimates' "
+             "disagreement with the 3D-3D estimate along the pair's depth-scale response "
+             "(`sensor.depth_drift_pairs`; 0: off; docs/derivation.md, \"The depth's drift\"). The default "
+             "model (its terms fitted on frames 0-119 with the window of 10) on the consecutive pairs of fr1_rpy: "
+             "ANEES t / r of the pairs and of chains of 30 (against the reference with its jitter) and the "
+             "chains' translation RMS per half; over all pairs, the translation RMS of chains of 10 to 200 pairs "
+             "and the ATE after alignment (`metrics.json`).", "",
+             "| window (pairs) | frames 1-119: pairs / chains of 30 / chain RMS (mm) | frames 120-239: pairs / "
+             "chains of 30 / chain RMS (mm) | chains of " + " / ".join(map(str, DRIFT_LENGTHS)) + ": RMS (mm) | "
+             "ATE (m) |", "|---|---|---|---|---|"]
+    for m in DRIFT_WINDOWS:
+        cfg = OdometryConfig().replace(sensor={"depth_drift_pairs": m})
+        with tempfile.TemporaryDirectory() as tmp:
+            run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False)
+        steps = pairs_with_truth(run.steps, lookup)
+        T_est, T_true, covs = relative_ground_truth(steps, lookup)
+        t_ref, t_cur = np.array([s.ref_timestamp for s in steps]), np.array([s.timestamp for s in steps])
+        ref = jitter(t_ref, t_cur)
+        p = {"T_est": T_est, "T_true": T_true, "ref": ref, "jitter": jitter, "t_ref": t_ref, "t_cur": t_cur,
+             "end": np.array([index[t] for t in t_cur])}
+        cells = []
+        for lo, hi in ((1, 119), (120, 239)):
+            half = (p["end"] >= lo) & (p["end"] <= hi)
+            h, h_covs = subset(p, half), covs[half] + ref[half]
+            nt, nr = anees_cells(relative_pose_tangent_errors(h["T_est"], h["T_true"]), h_covs)
+            ct, cr = chain_anees(h, h_covs)
+            cells.append(f"{nt.mean():.2f} / {nr.mean():.2f}, {ct:.2f} / {cr:.2f}, "
+                         f"{1e3 * chain_translation_rms(h['T_est'], h['T_true'], CHAIN):.1f}")
+        lengths = " / ".join(f"{1e3 * chain_translation_rms(T_est, T_true, w):.1f}" for w in DRIFT_LENGTHS)
+        lines.append(f"| {m} | {cells[0]} | {cells[1]} | {lengths} | {run.metrics['ate']['rmse']:.4f} |")
+    return lines + [""]
+
+
+def chain_translation_rms(T_est: np.ndarray, T_true: np.ndarray, w: int) -> float:
+    """Translation RMS (m) of the chains of ``w`` consecutive pairs against the truth's."""
+    est, _ = compose_chains(T_est, np.zeros((len(T_est), 6, 6)), w)
+    true, _ = compose_chains(T_true, np.zeros((len(T_true), 6, 6)), w)
+    return float(np.sqrt(np.mean(np.sum(relative_pose_tangent_errors(est, true)[:, 3:] ** 2, axis=1))))
+
+
 def opencv_pairs(seq: TumSequence, lookup: dict) -> dict:
     """OpenCV's dense RGB-D odometry (``cv2.Odometry`` of OpenCV 5, photometric and depth terms,
     default settings) over the consecutive frames of ``seq``, on images undistorted with the
@@ -767,7 +820,7 @@ def main() -> None:
               + span_table(args.data) + motion_table(args.data) + acceleration_table(args.data)
               + whole_sequence_table(args.data)
               + speed_term_table(args.data)
-              + closure_table(args.data) + persistence_table(args.data)
+              + closure_table(args.data) + persistence_table(args.data) + drift_table(args.data)
               + reference_table(args.data) + independent_table(args.data))
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
