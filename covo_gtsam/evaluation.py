@@ -154,7 +154,7 @@ class RunEvaluation:
     (:meth:`to_dict`) and the arrays behind them, for figures and further analysis.
 
     Without ground truth only the frame counts, lost frames, timing and flagged pairs are filled
-    in (``has_ground_truth`` False). With it, a statistic that cannot be computed is None and
+    in (``has_ground_truth`` False; :meth:`to_dict` writes the other statistics null). With it, a statistic that cannot be computed is None and
     ``not_computed[name]`` says why (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``, ``"nees_breakdown"``,
     ``"reference_jitter"``); its array, if it has one, is then empty, or holds the values that made it
     fail (not finite).
@@ -225,11 +225,11 @@ class RunEvaluation:
         return float(self.frames / self.elapsed_s) if self.elapsed_s > 0 else None
 
     def to_dict(self) -> dict:
-        """The ``metrics.json`` dictionary (a copy): the counts and timing, then with ground truth
-        ``not_computed``, ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`,
-        ``chains``, ``nees_breakdown``, ``reference_jitter``, ``nees_with_reference_jitter`` and
-        ``without_reference_jitter``, then
-        ``self_calibration`` and ``version`` when they are set."""
+        """The ``metrics.json`` dictionary (a copy): the counts and timing, then ``not_computed``,
+        ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`, ``chains``,
+        ``nees_breakdown``, ``reference_jitter``, ``nees_with_reference_jitter`` and
+        ``without_reference_jitter`` (without ground truth null, each with that reason under
+        ``not_computed``), then ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
             "sequence": self.sequence,
             "frames": self.frames,
@@ -244,17 +244,20 @@ class RunEvaluation:
             "flagged_pairs": len(self.flagged),
             "flagged": self.flagged,
         }
-        if self.has_ground_truth:
-            out["not_computed"] = self.not_computed
-            out["segments"] = self.segments
-            out.update({f"rpe_{delta}": stats for delta, stats in self.rpe.items()})
-            out["ate"] = self.ate
-            out.update(self.consistency or dict.fromkeys(CONSISTENCY_KEYS))
-            out["chains"] = self.chains
-            out["nees_breakdown"] = self.breakdown
-            out["reference_jitter"] = self.reference
-            out["nees_with_reference_jitter"] = self.nees_with_reference_jitter
-            out["without_reference_jitter"] = self.without_reference_jitter
+        # without ground truth the same keys, null, each with the reason
+        rpe = self.rpe if self.has_ground_truth else dict.fromkeys(RPE_DELTAS)
+        out["not_computed"] = self.not_computed if self.has_ground_truth else dict.fromkeys(
+            (*(f"rpe_{delta}" for delta in rpe), "ate", "anees", "chains", "nees_breakdown", "reference_jitter"),
+            "the sequence has no ground truth")
+        out["segments"] = self.segments
+        out.update({f"rpe_{delta}": stats for delta, stats in rpe.items()})
+        out["ate"] = self.ate
+        out.update(self.consistency or dict.fromkeys(CONSISTENCY_KEYS))
+        out["chains"] = self.chains
+        out["nees_breakdown"] = self.breakdown
+        out["reference_jitter"] = self.reference
+        out["nees_with_reference_jitter"] = self.nees_with_reference_jitter
+        out["without_reference_jitter"] = self.without_reference_jitter
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
         if self.version is not None:

@@ -252,8 +252,8 @@ def run_sequence(
 
     The folder is checked before the first frame (the files of :data:`RUN_FILES` and, with
     ``plots``, the figures of ``plots/`` must be writable) and the results of an earlier run of
-    those names are removed, so the folder describes one run (an earlier bag goes only when this run
-    writes a bag of its format, and only if covo wrote it); ``config.toml`` (``config``, which
+    those names are removed, so the folder describes one run (so is an earlier bag, but only one
+    covo wrote: a user's file of that name stays); ``config.toml`` (``config``, which
     ``--config`` reads back) is written first. An interrupted run leaves its text files (valid up
     to the last line) and no ``metrics.json``.
     The folder is locked while the run writes into it.
@@ -278,11 +278,13 @@ def run_sequence(
     with FolderLock(out):
         from .plots import RUN_PLOTS
 
-        if bag_out is not None:  # checked before anything is removed; the bag writer removes covo's own
-            from .ros_io import clear_bag_output
+        from .ros_io import clear_bag_output, remove_earlier_bags
 
-            clear_bag_output(out, bag_out, inputs=(getattr(seq, "path", None),), remove=False)
+        inputs = (getattr(seq, "path", None),)
+        if bag_out is not None:  # checked before anything is removed; the bag writer removes covo's own
+            clear_bag_output(out, bag_out, inputs=inputs, remove=False)
         prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
+        remove_earlier_bags(out, bag_out, inputs)  # of the other format, or of any without --bag-out
         save_config(config, out / "config.toml", header=f"covo-gtsam {__version__}: the configuration of this run")
         with kernel_threads(1):
             return _run(vo, StepHistory(keep_error_bases), seq, out, config, max_frames, plots, progress, bag_out)

@@ -122,6 +122,19 @@ def clear_bag_output(out_dir: str | os.PathLike, fmt: str, inputs: tuple = (), r
             raise DatasetError(f"{path}: cannot remove the earlier run's bag ({exc.strerror or exc})") from None
 
 
+def remove_earlier_bags(out_dir: str | os.PathLike, keep: str | None, inputs: tuple = ()) -> None:
+    """Remove the bags an earlier run of covo wrote in ``out_dir`` in the formats this run does not
+    write (``keep``: the one it writes, or None), so the folder describes one run. A path there that
+    is not recognisably covo's bag (a user's file, or rosbags not installed to tell) stays."""
+    for fmt in BAG_FORMATS:
+        if fmt == keep or not bag_output_path(out_dir, fmt).exists():
+            continue
+        try:
+            clear_bag_output(out_dir, fmt, inputs)
+        except (ConfigError, DatasetError):
+            pass  # not covo's, or cannot be told: left as it is
+
+
 def _stamp(t: float) -> tuple[int, int]:
     ns = int(round(float(t) * 1e9))
     return ns // 1_000_000_000, ns % 1_000_000_000

@@ -158,7 +158,7 @@ def test_figures_read_the_result_object_not_a_second_computation(sample_run, tmp
     assert all(p.stat().st_size > 0 for p in written)
 
 
-def test_without_ground_truth_only_the_counts():
+def test_without_ground_truth_only_the_counts_and_null_statistics():
     from types import SimpleNamespace
 
     import gtsam
@@ -169,7 +169,9 @@ def test_without_ground_truth_only_the_counts():
     ev = evaluate_run(steps, SimpleNamespace(name="x", groundtruth=None), 2.0)
     assert not ev.has_ground_truth and ev.rpe == {} and ev.ate is None and ev.nees_translation.size == 0
     d = ev.to_dict()
-    assert list(d) == BASE_KEYS
+    assert list(d) == [*BASE_KEYS, *GT_KEYS]  # the same keys as with ground truth, null, with the reason
+    assert all(d[k] is None for k in GT_KEYS if k not in ("not_computed", "segments", "nees_with_reference_jitter"))
+    assert d["not_computed"]["ate"] == d["not_computed"]["chains"] == "the sequence has no ground truth"
     assert d["frames_per_second"] == 1.0 and d["lost"] == [{"timestamp": 0.1, "reason": "no depth"}]
     assert evaluate_run(steps, SimpleNamespace(name="x", groundtruth=None), 0.0).frames_per_second is None
 

@@ -446,16 +446,22 @@ def test_bag_output_never_replaces_the_users_files(sample_dir, tmp_path, capsys)
     assert main([*args, "--bag-out", "ros1"]) == 2
     assert capsys.readouterr().err.count("\n") == 1 and (out / "odometry.bag").is_symlink()
     (out / "odometry.bag").unlink()
-    # covo's own bag is replaced by the next run's; a run without --bag-out leaves every bag alone
+    # covo's own bag is replaced by the next run's, and removed by a run that writes none or the other
+    # format (the folder describes one run); a user's file of a bag's name stays
     assert main([*args, "--bag-out", "ros2"]) == 0 and (out / "odometry" / "metadata.yaml").is_file()
     assert main([*args, "--bag-out", "ros2"]) == 0 and (out / "odometry" / "metadata.yaml").is_file()
-    assert main(args) == 0 and (out / "odometry" / "metadata.yaml").is_file()
-    # a user's ROS 2 recording of that name (other topics) is not covo's
+    assert main([*args, "--bag-out", "ros1"]) == 0 and (out / "odometry.bag").is_file()
+    assert not (out / "odometry").exists()
+    (out / "odometry").mkdir()
+    (out / "odometry" / "notes.txt").write_text("the user's")
+    assert main(args) == 0 and not (out / "odometry.bag").exists()
+    assert (out / "odometry" / "notes.txt").read_text() == "the user's"
     shutil.rmtree(out / "odometry")
+    # a user's ROS 2 recording of that name (other topics) is not covo's: refused as output, kept
     write_bag(out / "odometry", TumSequence(sample_dir), ros1=False, colour="rgb8", depth="32FC1", n=3)
     assert main([*args, "--bag-out", "ros2"]) == 2
     assert "is not a bag written by covo (topics /camera/" in capsys.readouterr().err
-    assert (out / "odometry" / "metadata.yaml").is_file()
+    assert main(args) == 0 and (out / "odometry" / "metadata.yaml").is_file()
 
 
 def test_bag_output_never_replaces_the_bag_it_reads(sample_dir, tmp_path, capsys):
