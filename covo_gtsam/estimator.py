@@ -48,7 +48,9 @@ class RelativePoseResult:
     Attributes:
         pose: ``gtsam.Pose3`` T_k,k1, maps points of frame k+1 into frame k.
         covariance: 6x6, GTSAM tangent ``[rx ry rz tx ty tz]`` (rad, m), right perturbation,
-            ``scale`` times the ``gtsam.Marginals`` covariance.
+            ``scale`` times the ``gtsam.Marginals`` covariance: the per-point model's alone. A real
+            camera's pair errs more (errors shared by a frame's points); the odometry reports this
+            plus the sensor terms (:meth:`~covo_gtsam.config.OdometryConfig.sensor_covariance`).
         information: 6x6 ``J^T W J`` at the solution (unscaled), same tangent.
         scale: the factor phi applied to the marginal covariance (thesis 5.2.2; 1 = none).
         weighting: ``"consistent"`` or ``"thesis"``.

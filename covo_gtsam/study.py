@@ -128,6 +128,10 @@ def _fmt(v, digits: int = 4) -> str:
     return str(v)
 
 
+#: the study's own files in its folder (besides each sequence's results folder and plots/summary.png)
+SUMMARY_FILES = ("summary.csv", "summary.md")
+
+
 def write_summary(out: Path, rows: list[dict]) -> None:
     """``summary.csv`` (full precision) and ``summary.md`` (rounded) of the rows."""
     with open(out / "summary.csv", "w", newline="") as f:
@@ -184,13 +188,15 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
         ConfigError: the scheduler cannot be reached.
     """
     from .parallel import CONNECT_TIMEOUT, map_tasks
-    from .pipeline import check_output_dir
+    from .pipeline import check_output_dir, prepare_outputs
 
     paths = [os.path.abspath(os.fspath(p)) for p in paths]
     if not paths:
         raise ConfigError("evaluate needs at least one sequence")
     _check_inputs(paths)
     out = check_output_dir(Path(out_dir))
+    # an earlier study's summary and figure go first (also with plots off: never a stale figure)
+    prepare_outputs(out, SUMMARY_FILES, ("plots", ("summary.png",)), write_figures=plots)
     names = _names(paths)
     args = [(p, str(out / n), camera, config, max_frames, plots, topics) for p, n in zip(paths, names)]
     bar = None

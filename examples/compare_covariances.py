@@ -6,7 +6,8 @@
 For the estimate ``T_0,1`` (maps points of camera 1 into camera 0) it prints, per axis:
 
 ``Marginals``
-    what covo reports: ``gtsam.Marginals`` of the point-transfer graph (``result.covariance``);
+    the estimator's covariance: ``gtsam.Marginals`` of the point-transfer graph (``result.covariance``,
+    the per-point model's alone; on real frames covo reports it with the sensor terms added);
 ``Q_tq -> tangent``
     the thesis's covariance (4.20) computed independently here: first-order propagation of the
     point covariances through the (whitened) residuals' Jacobian with respect to the thesis's

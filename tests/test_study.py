@@ -40,6 +40,9 @@ def test_evaluate_serial_pool_and_dask_give_the_same_numbers(fr1_rpy_dir, fr1_de
     assert (tmp_path / "serial" / "plots" / "summary.png").is_file()
 
     assert _evaluate(seqs, tmp_path / "pool", "--workers", "2", "--no-plots") == serial
+    # the same folder again without plots: the earlier summary figure goes (a folder describes one study)
+    assert _evaluate([fr1_desk_dir], tmp_path / "serial", "--workers", "1", "--no-plots").keys() == {fr1_desk_dir.name}
+    assert not (tmp_path / "serial" / "plots" / "summary.png").exists()
 
     pytest.importorskip("dask.distributed")
     from dask.distributed import LocalCluster
