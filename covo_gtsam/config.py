@@ -154,7 +154,7 @@ class SensorConfig:
                                 "term; 0 for consecutive pairs)", "factor", "non-negative", maximum=100.0)
     depth_drift_pairs: int = integer(10, "recent pairs whose depth-free estimates' disagreement along the depth-scale "
                                      "response gives the depth's drift, which each pair's translation is corrected by "
-                                     "(0: off)", 0, 10000, unit="pairs")
+                                     "(0: off; 1 counts as 2; not in keyframe mode)", 0, 10000, unit="pairs")
     twist_history: int = integer(10, "recent changes of the camera's twist the latency and rolling-shutter terms "
                                  "are taken from", 1, 10000, unit="pairs")
     integrity_threshold: float = number(50.0, "flag a pair whose integrity statistic exceeds this (about chi2(6) "

@@ -25,12 +25,17 @@ def drift_along(delta: np.ndarray, b: np.ndarray, covariance: np.ndarray) -> np.
     """The translation part (6,; rotation 0) of ``c b``, where ``c = b^T W delta / b^T W b`` is the
     component of a depth-free estimate's correction ``delta`` (6,) to ``T_ref,cur`` along the
     pair's depth-scale response ``b`` (6,), weighted by ``W = covariance^-1`` (the pair's reported
-    covariance, 6x6). Zero where ``b`` carries no weight."""
-    Wb = np.linalg.solve(covariance, b)
-    norm = float(b @ Wb)
+    covariance, 6x6). NaN (which :meth:`DepthDrift.add` skips) where ``b`` carries no weight or the
+    covariance cannot be inverted."""
     out = np.zeros(6)
-    if norm > 0 and np.isfinite(norm):
-        out[3:] = (float(delta @ Wb) / norm) * b[3:]
+    try:
+        Wb = np.linalg.solve(covariance, b)
+    except np.linalg.LinAlgError:
+        return out + np.nan
+    norm = float(b @ Wb)
+    if not (norm > 0 and np.isfinite(norm)):
+        return out + np.nan
+    out[3:] = (float(delta @ Wb) / norm) * b[3:]
     return out
 
 
@@ -39,10 +44,10 @@ class DepthDrift:
     the correction ``k * mean`` of a pair over ``k`` intervals (right perturbation, the rotation 0)
     and its covariance ``k^2 S / n`` (``S`` the window's sample covariance, ``n = pairs``). Nothing
     until the window is full: the mean of a few vectors is mostly their noise, and so would be the
-    spread it is judged by."""
+    spread it is judged by. ``pairs`` 0 turns it off; a window needs at least 2 (1 counts as 2)."""
 
     def __init__(self, pairs: int) -> None:
-        self._window: deque[np.ndarray] = deque(maxlen=max(int(pairs), 1))
+        self._window: deque[np.ndarray] = deque(maxlen=max(int(pairs), 2))
         self.enabled = pairs > 0
 
     def add(self, vector: np.ndarray, intervals: int = 1) -> None:
@@ -58,7 +63,7 @@ class DepthDrift:
         """``(xi, C)``: the move (6,) of a pair over ``intervals`` frame intervals, ``T Exp(xi)``, and
         the covariance (6, 6) of that estimate; zeros until the window is full."""
         n = len(self._window)
-        if not self.enabled or n < max(self._window.maxlen, 2):
+        if not self.enabled or n < self._window.maxlen:
             return np.zeros(6), np.zeros((6, 6))
         V = np.asarray(self._window)
         k = max(intervals, 1)

@@ -123,7 +123,9 @@ class VisualOdometry(DeprecatedStepAccess):
         self._depth_jumps = 0  # posed pairs whose depth images were read whole periods apart
         self._depth_clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
         self._depth_stamped = False  # a depth image stamped apart from its colour image was seen
-        self._drift = DepthDrift(self.config.sensor.depth_drift_pairs)  # the depth's drift, from the depth-free estimates
+        # the depth's drift, from the depth-free estimates of consecutive pairs (frame to frame only: against
+        # a keyframe the twists are taken from the posed frames' poses, which the correction would move)
+        self._drift = DepthDrift(0 if self.config.tracking.keyframes else self.config.sensor.depth_drift_pairs)
         self._history = StepHistory()  # behind the deprecated steps, tracked_steps, lost_steps, trajectory()
 
     # -- front end -------------------------------------------------------------------------
@@ -360,8 +362,8 @@ class VisualOdometry(DeprecatedStepAccess):
                              ) -> RelativePoseResult:
         """``res`` with its translation moved by the depth's drift (:mod:`covo_gtsam.depth_drift`)
         and ``step``'s covariance grown by that estimate's own: a kept pair's depth-free estimates
-        (``check``) join the drift's window first, a flagged pair's do not."""
-        if not self._drift.enabled:
+        (``check``) join the drift's window first, a flagged pair's do not. Off in keyframe mode."""
+        if not (self._drift.enabled and dt > 0):  # a pair without an interval gets none of the drift
             return res
         k = self.config.sensor.frame_intervals(dt)
         if check is not None and not step.flagged:

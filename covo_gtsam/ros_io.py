@@ -130,9 +130,10 @@ def remove_earlier_bags(out_dir: str | os.PathLike, keep: str | None, inputs: tu
         if fmt == keep or not bag_output_path(out_dir, fmt).exists():
             continue
         try:
-            clear_bag_output(out_dir, fmt, inputs)
+            clear_bag_output(out_dir, fmt, inputs, remove=False)
         except (ConfigError, DatasetError):
-            pass  # not covo's, or cannot be told: left as it is
+            continue  # not covo's, or cannot be told: left as it is
+        clear_bag_output(out_dir, fmt, inputs)  # covo's: a removal that fails is an error
 
 
 def _stamp(t: float) -> tuple[int, int]:

@@ -119,3 +119,37 @@ def test_the_drift_correction_shortens_fr1_rpys_chains(fr1_rpy_dir):
         out[window] = (float(np.mean(nees_tr)), run.metrics["rpe_30"]["trans_rmse"])
     assert out[10][0] < 4.0 < 6.0 < out[0][0]
     assert out[10][1] < out[0][1] - 0.003
+
+
+def test_the_odometry_moves_the_translation_and_adds_the_estimates_covariance(sample_dir):
+    """With and without the correction the runs agree until the window is full; the first pair
+    corrected keeps its rotation, moves its translation, and its covariance grows in the
+    translation block only (positive semidefinite, nonzero)."""
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.odometry import VisualOdometry
+
+    seq = TumSequence(sample_dir)
+    frames = [(*seq.load(i), seq.timestamps[i], seq.depth_timestamps[i]) for i in range(16)]
+    runs = {}
+    for window in (0, 5):
+        vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(sensor={"depth_drift_pairs": window}))
+        runs[window] = [vo.register_frame(c, d, t, depth_timestamp=dt) for c, d, t, dt in frames]
+    off, on = runs[0], runs[5]
+    tracked = [i for i, s in enumerate(off) if s.has_relative_pose]
+    first = tracked[4]  # the fifth pair fills the window
+    for i in tracked[:4]:
+        np.testing.assert_array_equal(on[i].relative.matrix(), off[i].relative.matrix())
+        np.testing.assert_array_equal(on[i].covariance, off[i].covariance)
+    a, b = on[first], off[first]
+    np.testing.assert_allclose(a.relative.rotation().matrix(), b.relative.rotation().matrix(), atol=1e-12)
+    assert np.linalg.norm(a.relative.translation() - b.relative.translation()) > 1e-6
+    D = a.covariance - b.covariance
+    np.testing.assert_allclose(D[:3, :], 0.0, atol=1e-18)
+    assert np.linalg.eigvalsh(D[3:, 3:]).min() > -1e-15 and np.trace(D[3:, 3:]) > 0
+    # keyframe mode has no correction: the same poses with and without
+    poses = []
+    for window in (0, 5):
+        vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(tracking={"keyframes": True},
+                                                                      sensor={"depth_drift_pairs": window}))
+        poses.append([vo.register_frame(c, d, t, depth_timestamp=dt).pose.matrix() for c, d, t, dt in frames])
+    np.testing.assert_array_equal(poses[0], poses[1])
