@@ -338,7 +338,9 @@ def main(argv: list[str] | None = None) -> int:
     _one_blas_thread(sys.argv[1:] if argv is None else argv)
     try:
         parser = build_parser()  # imports GTSAM: Ctrl-C may arrive here
-        args = parser.parse_args(argv)
+        args, unknown = parser.parse_known_args(argv)
+        if unknown:  # the sub-command's usage, not the top level's
+            args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         code = args.func(args)
         if argv is None:  # a program run (the console script, python -m) ends here
             gc.freeze()  # spares the interpreter's shutdown its collections over every object left

@@ -68,7 +68,8 @@ def _setting(cls, name: str):
 
 def _parallel_arguments(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument("--workers", type=_int_in(1, 256), metavar="N",
-                        help=f"local worker processes for the {what} (1: in this process)")
+                        help=f"local worker processes for the {what}; 1 runs them in this process (default: one "
+                        "per core, at most one per task)")
     parser.add_argument("--scheduler", metavar="ADDR",
                         help=f"run the {what} on the Dask distributed scheduler at ADDR, e.g. tcp://127.0.0.1:8786 "
                         "(needs dask[distributed] here and on the workers)")
@@ -83,16 +84,17 @@ def _sequence_arguments(parser: argparse.ArgumentParser, help: str, bags: bool =
         parser.add_argument("sequence", metavar="SEQ", help=help)
     else:
         parser.add_argument("sequence", metavar="SEQ_DIR", help=help)
-    _camera_argument(parser)
+    _camera_argument(parser, bags)
     if bags:
         _topic_arguments(parser)
 
 
-def _camera_argument(parser: argparse.ArgumentParser) -> None:
+def _camera_argument(parser: argparse.ArgumentParser, bags: bool = True) -> None:
+    default = "the bag's camera info, or guessed" if bags else "guessed"
     parser.add_argument("--camera", metavar="NAME|FILE",
                         help="camera preset fr1, fr2 or fr3, or a camera file: ROS camera_calibration YAML, or "
-                        "TOML/JSON with fx fy cx cy width height depth_scale [k1 k2 p1 p2 k3] (default: the bag's "
-                        "camera info, or guessed from the folder name, e.g. 'freiburg1' -> fr1)")
+                        f"TOML/JSON with fx fy cx cy width height depth_scale [k1 k2 p1 p2 k3] (default: {default} "
+                        "from the folder name, e.g. 'freiburg1' -> fr1)")
 
 
 def _topic_arguments(parser: argparse.ArgumentParser) -> None:
@@ -124,8 +126,11 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 
 def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentParser:
-    """A sub-command with the shared epilog and formatter."""
-    return sub.add_parser(name, help=help, description=description, epilog=EPILOG, formatter_class=_HelpFormatter)
+    """A sub-command with the shared epilog and formatter; ``args.command_parser`` is it (for errors
+    about its own arguments)."""
+    command = sub.add_parser(name, help=help, description=description, epilog=EPILOG, formatter_class=_HelpFormatter)
+    command.set_defaults(command_parser=command)
+    return command
 
 
 def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) -> argparse.ArgumentParser:
@@ -161,7 +166,7 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     _sequence_arguments(run, "TUM RGB-D sequence folder, ROS 1 .bag file or ROS 2 bag folder", bags=True)
     run.add_argument("--max-frames", type=_int_in(1), metavar="N",
                      help="process only the first N frames (default: all)")
-    run.add_argument("--config", metavar="FILE", help="TOML or JSON settings (see README: configuration)")
+    run.add_argument("--config", metavar="FILE", help="TOML or JSON settings, one table per stage (every setting: docs/configuration.md; a run's OUT/config.toml repeats it)")
     run.add_argument("--weighting", choices=weightings, help="residual weighting (default: consistent)")
     run.add_argument("--scale", type=_setting(EstimatorConfig, "scale"), metavar="PHI",
                      help="the thesis's covariance scale phi: multiplies each pair's point-transfer "
@@ -198,7 +203,7 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     sim.add_argument("--bias-draws", type=_setting(SimulationConfig, "bias_draws"), default=0, metavar="N",
                      help="correct each estimate for its bias by a parametric bootstrap of N re-estimates "
                      "(default 0: none; 16 removes the bias at 8 px, docs/consistency.md finding 12)")
-    _parallel_arguments(sim, "Monte Carlo runs (same seed, same numbers)")
+    _parallel_arguments(sim, "Monte Carlo runs, same seed same numbers,")
     _output_arguments(sim, "DIR")
     sim.set_defaults(func=handlers["simulate"])
 
@@ -216,7 +221,7 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     _camera_argument(ev)
     _topic_arguments(ev)
     ev.add_argument("--max-frames", type=_int_in(1), metavar="N", help="only the first N frames of each (default: all)")
-    ev.add_argument("--config", metavar="FILE", help="TOML or JSON settings for every run (see README: configuration)")
+    ev.add_argument("--config", metavar="FILE", help="TOML or JSON settings for every run (every setting: docs/configuration.md)")
     _parallel_arguments(ev, "sequences")
     _output_arguments(ev, "DIR")
     ev.set_defaults(func=handlers["evaluate"])

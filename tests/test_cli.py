@@ -218,6 +218,11 @@ def test_cli_version_and_help(capsys):
         main(["run", "--help"])
     out = capsys.readouterr().out
     assert "default: all" in out and "calibrated sensor terms" in out and "[rx ry rz tx ty tz]" in out
+    # an unknown option of a sub-command: that sub-command's usage, exit 2
+    with pytest.raises(SystemExit) as info:
+        main(["run", "seq", "--out", "o", "--bogus"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err.startswith("usage: covo run") and "unrecognized arguments: --bogus" in err
 
 
 # -- a real process -------------------------------------------------------------------------------

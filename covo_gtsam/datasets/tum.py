@@ -218,6 +218,8 @@ class TumSequence:
         check_real("depth_scale", depth_scale, "positive")
         self.depth_scale = float(depth_scale)
         self.path = Path(os.path.abspath(os.fspath(path)))
+        if self.path.exists() and not self.path.is_dir():
+            raise DatasetError(f"{self.path}: is a file, neither a TUM sequence folder nor a ROS bag")
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: sequence folder does not exist")
         self.name = self.path.name
