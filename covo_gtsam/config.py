@@ -425,7 +425,9 @@ def _toml(data: dict[str, dict[str, Any]], header: str | None) -> str:
         for key, value in table.items():
             meta = fields[key].metadata
             note = f"{meta['unit']}: {meta['doc']}" if meta["unit"] else meta["doc"]
-            if value is None:
+            if value is None and meta["kind"] == "choice":  # TOML has no null: the choice's "none"
+                lines.append(f'{key} = "none"  # {note}')
+            elif value is None:
                 lines.append(f"# {key}: unset ({note})")
             else:
                 lines.append(f"{key} = {_toml_value(value)}  # {note}")

@@ -84,7 +84,7 @@ def parse_choice(name: str, value, choices: type[Enum], optional: bool = False):
     (given as None, ``"none"`` or ``""``: TOML has no null). ConfigError as :func:`check_choice`."""
     if optional and (value is None or (isinstance(value, str) and value in ("", "none"))):
         return None
-    check_choice(name, value, ((None,) if optional else ()) + tuple(c.value for c in choices))
+    check_choice(name, value, tuple(c.value for c in choices) + (("none",) if optional else ()))
     return choices(value)
 
 
