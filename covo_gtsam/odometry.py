@@ -126,6 +126,7 @@ class VisualOdometry(DeprecatedStepAccess):
         # the depth's drift, from the depth-free estimates of consecutive pairs (frame to frame only: against
         # a keyframe the twists are taken from the posed frames' poses, which the correction would move)
         self._drift = DepthDrift(0 if self.config.tracking.keyframes else self.config.sensor.depth_drift_pairs)
+        self._drift_moves = np.zeros(2)  # sum of the squared corrections per frame interval (m^2), and how many
         self._history = StepHistory()  # behind the deprecated steps, tracked_steps, lost_steps, trajectory()
 
     # -- front end -------------------------------------------------------------------------
@@ -370,6 +371,8 @@ class VisualOdometry(DeprecatedStepAccess):
             delta = 0.5 * (check.delta_forward + check.delta_backward)
             self._drift.add(drift_along(delta, b, step.covariance), k)
         xi, C = self._drift.correction(k)
+        if np.any(xi):  # the drift per interval, for the run's report
+            self._drift_moves += (float(np.linalg.norm(xi)) / k) ** 2, 1
         step.covariance = step.covariance + C
         return replace(res, pose=res.pose.compose(gtsam.Pose3.Expmap(xi)))
 
@@ -686,11 +689,15 @@ class VisualOdometry(DeprecatedStepAccess):
         depth image switched to a neighbour: the ``depth_jump`` term), and the depth images' own
         clock period (s; None when no depth image was stamped apart from its colour image): where it
         differs from the colour clock's the colour-depth offset drifts by the difference per frame,
-        and a switch comes wherever the offset passes half a period."""
+        and a switch comes wherever the offset passes half a period; and the RMS of the depth-drift
+        corrections per frame interval (m; None when none was applied: the correction off, keyframe
+        mode, or fewer pairs than its window)."""
         offsets = self._placed_offsets
         return {"frame_period_s": self._clock.period_s,
                 "stamp_jitter_s": float(np.std(offsets)) if len(offsets) > 2 else None,
                 "integrity_scale": self._integrity.scale,
                 "twist_change_isotropic_share": self._twist_changes.share,
                 "depth_period_jumps": self._depth_jumps,
-                "depth_frame_period_s": self._depth_clock.period_s if self._depth_stamped else None}
+                "depth_frame_period_s": self._depth_clock.period_s if self._depth_stamped else None,
+                "depth_drift_rms_m": float(np.sqrt(self._drift_moves[0] / self._drift_moves[1]))
+                if self._drift_moves[1] else None}

@@ -243,12 +243,15 @@ def test_the_depth_drift_correction_removes_an_injected_drift(seed):
     """Each frame's depths scaled by 1 + 1 % sin(2 pi t / 3 s): the 30-pair chains drift by 13 mm
     RMS and their pairs' ANEES is 6.8; the correction takes them to 4-5 mm and 3.3. Without a drift
     it costs little (chains 1.7 -> 1.9 mm)."""
-    rms, anees = {}, {}
+    rms, anees, reported = {}, {}, {}
     for amplitude in (0.0, 0.01):
         cfg = SequenceSimulationConfig(frames=300, seed=seed, depth_drift=amplitude, **CLEAN)
         for window in (0, 10):
             r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0, "depth_drift_pairs": window}))
             rms[amplitude, window], anees[amplitude, window] = _chain_rms(r), r.nees()[0].mean()
+            reported[amplitude, window] = r.self_calibration["depth_drift_rms_m"]
     assert rms[0.01, 10] < 0.5 * rms[0.01, 0]
     assert anees[0.01, 10] < 4.0 < 5.0 < anees[0.01, 0]
     assert rms[0.0, 10] < 1.3 * rms[0.0, 0]
+    # metrics.json's report of the drift: several times larger where the depths drift
+    assert reported[0.0, 0] is None and reported[0.01, 10] > 3 * reported[0.0, 10]
