@@ -34,11 +34,12 @@ SIM_VARIANTS = {
 #: the per-point model alone: no sensor terms (correlation factor 1, no frame term)
 POINTS_ONLY = {"sensor": dict(correlation_factor=1.0, frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0,
                               **{name: 0.0 for name in ERROR_TERMS.values()})}
-#: the thesis's real-data setting: 8 px, its weighting, the published depth model, nothing else
+#: the thesis's real-data setting: 8 px, its weighting, the published depth model, nothing else (no
+#: rolling-shutter compensation, no depth-drift correction)
 THESIS_MODEL = {"noise": dict(pixel_sigma=8.0, depth_sigma_scale=1.0, depth_lookup_noise=False,
                               depth_offset_factor=0.0),
                 "estimator": dict(weighting="thesis"),
-                "sensor": dict(POINTS_ONLY["sensor"], rolling_shutter_s=0.0)}
+                "sensor": dict(POINTS_ONLY["sensor"], rolling_shutter_s=0.0, depth_drift_pairs=0)}
 
 
 def variant(*parts: dict) -> OdometryConfig:
