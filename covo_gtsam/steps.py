@@ -50,7 +50,8 @@ class OdometryStep:
     pairs this understates the translation drift on real data; docs/consistency.md, finding 7).
     A ``NEW_SEGMENT`` step has the last pose and its covariance plus
     :meth:`~covo_gtsam.config.TrackingConfig.gap_noise`. ``velocity`` is the camera's mean body
-    twist ``[omega, v]`` (rad/s, m/s) over the pair, ``Log(T_ref,cur) / dt``. ``quality`` is the
+    twist ``[omega, v]`` (rad/s, m/s) over the pair, ``Log(T_ref,cur) / dt`` of the 3D-3D estimate
+    (before the depth-drift correction moves ``relative``). ``quality`` is the
     pair's integrity statistic (:mod:`covo_gtsam.integrity`; about chi2(6) for a typical pair of
     the run, a pair over k frame intervals taken on the scale of one, None when it could not be
     formed) and ``flagged`` tells that it exceeded

@@ -227,7 +227,9 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
                            for i, p in enumerate(P)]) + J
     without = np.array([default.sensor_covariance(p) for p in P]) + J
     assert log_likelihood(err, with_terms) > log_likelihood(err, P) + 10  # the per-point model as reported
-    assert log_likelihood(err, with_terms) > log_likelihood(err, P + J) + 5  # ... even given the reference's jitter
+    # ... even given the reference's jitter (by 4.3 per pair; by more than 5 before the depth-drift correction took
+    # part of the persistent error out of the poses themselves)
+    assert log_likelihood(err, with_terms) > log_likelihood(err, P + J) + 3
     assert log_likelihood(err, with_terms) > log_likelihood(err, without)
     assert set(bases) == set(ERROR_TERMS)
 
@@ -236,7 +238,7 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
 @pytest.mark.slow
 def test_calibration_with_the_references_jitter_in_the_terms_takes_it_into_the_frame_term(fr1_rpy_dir, tmp_path):
     """Frames 0-119 of fr1_rpy without the ground truth's own rotation jitter as a known term (covo
-    calibrate --jitter-in-terms): the frame term takes it in, 0.096 deg against the camera's 0.062
+    calibrate --jitter-in-terms): the frame term takes it in, 0.096 deg against the camera's 0.061
     (docs/derivation.md, "The reference's own noise")."""
     pytest.importorskip("scipy")
     from covo_gtsam.odometry import OdometryConfig
@@ -245,7 +247,7 @@ def test_calibration_with_the_references_jitter_in_the_terms_takes_it_into_the_f
     seq = TumSequence(fr1_rpy_dir)
     fit, _ = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False, fit_span=False)
     assert fit.frame_sigma_rot_deg == pytest.approx(0.096, rel=0.05)
-    assert OdometryConfig().sensor.frame_sigma_rot_deg == pytest.approx(0.062, rel=0.01)
+    assert OdometryConfig().sensor.frame_sigma_rot_deg == pytest.approx(0.061, rel=0.01)
 
 
 @pytest.mark.slow

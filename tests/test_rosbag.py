@@ -227,7 +227,8 @@ def test_ros2_bag_bgr8_16uc1_runs_like_the_millimetre_folder(fr1_rpy_dir, tmp_pa
     assert "no ground truth" in capsys.readouterr().out
     _run(["run", str(ref), "--out", str(tmp_path / "ref_out"), "--camera", str(cam)])
     _same_trajectory(tmp_path / "ref_out", tmp_path / "bag_out")
-    assert "rpe_1" not in json.loads((tmp_path / "bag_out" / "metrics.json").read_text())
+    m = json.loads((tmp_path / "bag_out" / "metrics.json").read_text())
+    assert m["rpe_1"] is None and m["not_computed"]["rpe_1"] == "the sequence has no ground truth"
     check_output_bag(tmp_path / "bag_out", tmp_path / "bag_out" / "odometry", FRAME)
 
 
