@@ -166,7 +166,8 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     _sequence_arguments(run, "TUM RGB-D sequence folder, ROS 1 .bag file or ROS 2 bag folder", bags=True)
     run.add_argument("--max-frames", type=_int_in(1), metavar="N",
                      help="process only the first N frames (default: all)")
-    run.add_argument("--config", metavar="FILE", help="TOML or JSON settings, one table per stage (every setting: docs/configuration.md; a run's OUT/config.toml repeats it)")
+    run.add_argument("--config", metavar="FILE", help="TOML or JSON settings, one table per stage (every setting: "
+                     "docs/configuration.md; a run's OUT/config.toml repeats it)")
     run.add_argument("--weighting", choices=weightings, help="residual weighting (default: consistent)")
     run.add_argument("--scale", type=_setting(EstimatorConfig, "scale"), metavar="PHI",
                      help="the thesis's covariance scale phi: multiplies each pair's point-transfer "
@@ -221,7 +222,8 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     _camera_argument(ev)
     _topic_arguments(ev)
     ev.add_argument("--max-frames", type=_int_in(1), metavar="N", help="only the first N frames of each (default: all)")
-    ev.add_argument("--config", metavar="FILE", help="TOML or JSON settings for every run (every setting: docs/configuration.md)")
+    ev.add_argument("--config", metavar="FILE",
+                    help="TOML or JSON settings for every run (every setting: docs/configuration.md)")
     _parallel_arguments(ev, "sequences")
     _output_arguments(ev, "DIR")
     ev.set_defaults(func=handlers["evaluate"])

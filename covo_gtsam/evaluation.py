@@ -154,10 +154,11 @@ class RunEvaluation:
     (:meth:`to_dict`) and the arrays behind them, for figures and further analysis.
 
     Without ground truth only the frame counts, lost frames, timing and flagged pairs are filled
-    in (``has_ground_truth`` False; :meth:`to_dict` writes the other statistics null). With it, a statistic that cannot be computed is None and
-    ``not_computed[name]`` says why (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``, ``"nees_breakdown"``,
-    ``"reference_jitter"``); its array, if it has one, is then empty, or holds the values that made it
-    fail (not finite).
+    in (``has_ground_truth`` False; :meth:`to_dict` writes the other statistics null). With it, a
+    statistic that cannot be computed is None and ``not_computed[name]`` says why
+    (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``, ``"nees_breakdown"``,
+    ``"reference_jitter"``); its array, if it has one, is then empty, or holds the values that made
+    it fail (not finite).
     """
 
     sequence: str

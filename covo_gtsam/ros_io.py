@@ -116,10 +116,15 @@ def clear_bag_output(out_dir: str | os.PathLike, fmt: str, inputs: tuple = (), r
         raise DatasetError(f"{path}: exists and is not a bag written by covo (topics {', '.join(sorted(topics))}); "
                            "remove it first")
     if remove:
-        try:
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
-        except OSError as exc:
-            raise DatasetError(f"{path}: cannot remove the earlier run's bag ({exc.strerror or exc})") from None
+        _remove_bag(path)
+
+
+def _remove_bag(path: Path) -> None:
+    """Remove covo's earlier bag at ``path`` (a file or a folder); :class:`DatasetError` if that fails."""
+    try:
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot remove the earlier run's bag ({exc.strerror or exc})") from None
 
 
 def remove_earlier_bags(out_dir: str | os.PathLike, keep: str | None, inputs: tuple = ()) -> None:
@@ -130,10 +135,10 @@ def remove_earlier_bags(out_dir: str | os.PathLike, keep: str | None, inputs: tu
         if fmt == keep or not bag_output_path(out_dir, fmt).exists():
             continue
         try:
-            clear_bag_output(out_dir, fmt, inputs, remove=False)
+            clear_bag_output(out_dir, fmt, inputs, remove=False)  # only tells whether it is covo's
         except (ConfigError, DatasetError):
             continue  # not covo's, or cannot be told: left as it is
-        clear_bag_output(out_dir, fmt, inputs)  # covo's: a removal that fails is an error
+        _remove_bag(bag_output_path(out_dir, fmt))  # covo's: a removal that fails is an error
 
 
 def _stamp(t: float) -> tuple[int, int]:

@@ -172,6 +172,8 @@ def drift_rows(seeds: range, frames: int) -> list[str]:
     pixel and depth noise only, the odometry told the true noise and no term; the drift correction
     off (window 0) and on (10 pairs). ANEES t of the pairs, translation RMS and ANEES t of the chains of
     ``DRIFT_CHAIN`` consecutive pairs (stamps at the captures: no jitter or delay)."""
+    import gtsam
+
     from covo_gtsam.covariance import compose_chains
     from covo_gtsam.metrics import relative_pose_tangent_errors
 
@@ -185,7 +187,7 @@ def drift_rows(seeds: range, frames: int) -> list[str]:
                 odometry = TRUTH.replace(sensor={"rolling_shutter_s": 0.0, "depth_drift_pairs": window})
                 r = simulate_sequence(cfg, odometry)
                 nt, _ = r.nees()
-                T_est = r.capture_truth @ np.array([se3_exp(-e) for e in r.errors])
+                T_est = r.capture_truth @ np.array([gtsam.Pose3.Expmap(-e).matrix() for e in r.errors])
                 est, C = compose_chains(T_est, r.covariances, DRIFT_CHAIN)
                 true, _ = compose_chains(r.capture_truth, r.covariances, DRIFT_CHAIN)
                 e = relative_pose_tangent_errors(est, true)[:, 3:]
@@ -212,13 +214,6 @@ def drift_cost_rows(seeds: range, frames: int) -> list[str]:
             rec.setdefault(f"rms{window}", []).append(1e3 * np.sqrt(np.mean(np.sum(q.errors[m, 3:] ** 2, axis=1))))
             rec.setdefault(f"scale{window}", []).append(100 * fit.sigmas["depth_scale"])
     return [f"| {window} | {mean_sd(rec[f'rms{window}'])} | {mean_sd(rec[f'scale{window}'])} |" for window in (0, 10)]
-
-
-def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """4x4 ``Exp(xi)`` (tangent ``[omega, v]``, GTSAM's)."""
-    import gtsam
-
-    return gtsam.Pose3.Expmap(np.asarray(xi, dtype=float)).matrix()
 
 
 def mean_sd(values) -> str:
