@@ -341,7 +341,9 @@ def main(argv: list[str] | None = None) -> int:
         args, unknown = parser.parse_known_args(argv)
         if unknown:  # the sub-command's usage, not the top level's
             args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-        code = args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning(warnings.showwarning)
+            code = args.func(args)
         if argv is None:  # a program run (the console script, python -m) ends here
             gc.freeze()  # spares the interpreter's shutdown its collections over every object left
         return code
@@ -355,6 +357,20 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
             return _interrupted()
         raise
+
+
+def _show_warning(show):
+    """``warnings.showwarning`` that prints the package's own warnings as one ``covo: warning:`` line
+    on stderr and leaves others to ``show``."""
+    package = os.path.dirname(os.path.abspath(__file__))
+
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        if os.path.abspath(filename).startswith(package + os.sep):
+            print(f"covo: warning: {message}", file=sys.stderr)
+        else:
+            show(message, category, filename, lineno, file, line)
+
+    return showwarning
 
 
 def _one_blas_thread(argv: list[str]) -> None:

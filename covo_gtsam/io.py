@@ -19,6 +19,7 @@ import math
 import os
 import stat
 import tempfile
+import warnings
 from pathlib import Path
 from typing import IO
 
@@ -116,14 +117,19 @@ def _load_rows(path: str | os.PathLike, ncols: int, what: str, optional: int = 0
     return np.array(rows, dtype=float).reshape(-1, ncols), np.array(line_nos, dtype=int)
 
 
+def _invalid_poses(rows: np.ndarray, col: int) -> np.ndarray:
+    """Mask (N,) of the rows whose TUM columns ``tx ty tz qx qy qz qw`` (from ``col``) hold a
+    non-finite value or a zero quaternion."""
+    tum = rows[:, col : col + 7]
+    return ~np.isfinite(tum).all(axis=1) | ~(np.linalg.norm(tum[:, 3:7], axis=1) > 1e-12)
+
+
 def _poses_from_rows(p: str | os.PathLike, rows: np.ndarray, line_nos: np.ndarray, col: int) -> np.ndarray:
     """4x4 poses from TUM columns ``tx ty tz qx qy qz qw`` starting at ``col``; checks the quaternions."""
-    tum = rows[:, col : col + 7]
-    norm = np.linalg.norm(tum[:, 3:7], axis=1)
-    bad = np.flatnonzero(~np.isfinite(tum).all(axis=1) | ~(norm > 1e-12))
+    bad = np.flatnonzero(_invalid_poses(rows, col))
     if bad.size:
         raise DatasetError(f"{p}:{line_nos[bad[0]]}: non-finite pose value or zero quaternion")
-    return pose_from_tum(tum).reshape(-1, 4, 4)
+    return pose_from_tum(rows[:, col : col + 7]).reshape(-1, 4, 4)
 
 
 def _check_pose(T: np.ndarray) -> np.ndarray:
@@ -151,14 +157,25 @@ def write_tum_trajectory(path: str | os.PathLike, stamps: np.ndarray, poses: np.
         w._write("".join(lines))
 
 
-def load_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def load_tum_trajectory(path: str | os.PathLike, skip_invalid: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Stamps (N,) in s and poses (N, 4, 4) of a TUM trajectory file (also ``groundtruth.txt``), in
     the file's order, one pose per stamp.
 
     A line repeating an earlier line's stamp and pose is dropped; one repeating the stamp with a
     different pose raises :class:`DatasetError` naming the file and both lines, as do malformed lines.
+    A line with a non-finite stamp or pose value or a zero quaternion raises too, or with
+    ``skip_invalid`` (a motion-capture dropout in a ground truth) is left out with a warning naming
+    the file and the lines.
     """
     rows, line_nos = _load_rows(path, _TUM_COLS, "timestamp tx ty tz qx qy qz qw")
+    bad = _invalid_poses(rows, 1) | ~np.isfinite(rows[:, 0])
+    if skip_invalid and bad.any():
+        shown = ", ".join(str(n) for n in line_nos[bad][:5]) + (", ..." if bad.sum() > 5 else "")
+        warnings.warn(f"{path}: {int(bad.sum())} line(s) with a non-finite value or a zero quaternion left out "
+                      f"(line {shown})", stacklevel=2)
+        rows, line_nos = rows[~bad], line_nos[~bad]
+    elif not np.isfinite(rows[:, 0]).all():
+        raise DatasetError(f"{path}:{line_nos[np.flatnonzero(~np.isfinite(rows[:, 0]))[0]]}: non-finite timestamp")
     stamps, poses = rows[:, 0].copy(), _poses_from_rows(path, rows, line_nos, 1)
     keep = _first_of_each_stamp(path, stamps, poses, line_nos)
     return stamps[keep], poses[keep]

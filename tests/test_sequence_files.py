@@ -118,6 +118,44 @@ def test_stamps_written_with_too_few_digits_are_an_error(small_sample, tmp_path,
     assert not (out / "trajectory.txt").exists()
 
 
+def test_groundtruth_dropouts_are_left_out_with_a_warning(small_sample, tmp_path, capsys):
+    """A motion-capture dropout (a ground-truth line with NaN, or a zero quaternion) is left out of
+    the reference with one ``covo: warning:`` line naming the file and its lines: the run goes on and
+    is evaluated against the samples left. A trajectory file read as such still refuses the line."""
+    from covo_gtsam.io import load_tum_trajectory
+
+    seq = small_sample(5)
+    plain = TumSequence(seq)
+    gt = seq / "groundtruth.txt"
+    lines = gt.read_text().splitlines()
+    first = next(i for i, ln in enumerate(lines) if not ln.startswith("#"))
+    for k, value in ((first + 3, "nan"), (first + 6, None)):
+        v = lines[k].split()
+        lines[k] = " ".join(v[:2] + [value] + v[3:]) if value else " ".join(v[:4] + ["0", "0", "0", "0"])
+    gt.write_text("\n".join(lines) + "\n")
+    with pytest.warns(UserWarning, match=rf"groundtruth\.txt: 2 line\(s\) .* left out \(line {first + 4}, {first + 7}\)"):
+        dropped = TumSequence(seq)
+    assert len(dropped.gt_samples[0]) == len(plain.gt_samples[0]) - 2
+    assert np.isin(dropped.gt_samples[0], plain.gt_samples[0]).all()
+    assert np.all(np.isfinite(dropped.groundtruth)) and dropped.gt_valid.sum() == plain.gt_valid.sum()
+    with pytest.raises(DatasetError, match=rf"groundtruth\.txt:{first + 4}: non-finite pose value"):
+        load_tum_trajectory(gt)
+    capsys.readouterr()
+    assert main(["run", str(seq), "--out", str(tmp_path / "o"), "--quiet", "--no-plots"]) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith(f"covo: warning: {gt}: 2 line(s)"), err
+    assert json.loads((tmp_path / "o" / "metrics.json").read_text())["ate"] is not None
+
+
+def test_a_non_finite_stamp_in_a_trajectory_file_is_an_error(tmp_path):
+    from covo_gtsam.io import load_tum_trajectory
+
+    path = tmp_path / "trajectory.txt"
+    path.write_text("1.0 0 0 0 0 0 0 1\nnan 0 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"trajectory\.txt:2: non-finite timestamp"):
+        load_tum_trajectory(path)
+
+
 def test_groundtruth_with_repeated_lines(small_sample, tmp_path, capsys):
     """Every ground-truth line written twice: the run and the reference's own noise are those of the
     plain file; a repeat with a pose 1 m away stops the run naming the file and line."""

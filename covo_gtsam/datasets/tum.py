@@ -264,7 +264,7 @@ class TumSequence:
         self.gt_samples: tuple[np.ndarray, np.ndarray] | None = None
         gt_file = self.path / "groundtruth.txt"
         if gt_file.is_file():
-            stamps, poses = load_tum_trajectory(gt_file)
+            stamps, poses = load_tum_trajectory(gt_file, skip_invalid=True)
             if stamps.size:
                 self.gt_samples = (stamps, poses)
                 self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps, max_gap)
