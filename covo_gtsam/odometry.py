@@ -222,7 +222,8 @@ class VisualOdometry(DeprecatedStepAccess):
         """The first posed frame, the world frame; lost without enough features with depth."""
         if frame.num_valid < self.config.frontend.min_pairs:
             return OdometryStep(t, StepStatus.LOST, reason=f"only {frame.num_valid} features with valid depth "
-                                f"(of {frame.num_features} detected; need {self.config.frontend.min_pairs})")
+                                f"(of {frame.num_features} detected; need {self.config.frontend.min_pairs})"
+                                f"{self._no_depth_note(frame)}")
         return OdometryStep(t, StepStatus.ORIGIN, pose=gtsam.Pose3(), pose_covariance=np.zeros((6, 6)))
 
     def _match_to_reference(self, frame: FrameData, t: float) -> tuple[OdometryStep, _PosedFrame]:
@@ -252,6 +253,15 @@ class VisualOdometry(DeprecatedStepAccess):
             return keyframe
         return replace(keyframe, min_pairs=max(2 * self.config.frontend.min_pairs,
                                                int(self.config.tracking.keyframe_ratio * step.num_pairs)))
+
+    def _no_depth_note(self, frame: FrameData) -> str:
+        """``"; the depth image has no depth within [min, max] m ..."`` when no pixel of ``frame``'s
+        depth image is in the front end's depth range (the reason a frame without valid features is
+        lost is then its depth image, not its colour image); else ``""``."""
+        fe = self.config.frontend
+        if frame.num_valid or np.any((frame.depth >= fe.min_depth) & (frame.depth <= fe.max_depth)):
+            return ""
+        return f"; the depth image has no depth within [{fe.min_depth:g}, {fe.max_depth:g}] m (all zero or out of range)"
 
     def _new_segment_step(self, frame: FrameData, lost: OdometryStep) -> OdometryStep:
         """A new segment at ``frame`` (it could not be matched after a run of lost frames); ``lost``
@@ -323,7 +333,8 @@ class VisualOdometry(DeprecatedStepAccess):
         min_pairs = self.config.frontend.min_pairs
         if pairs.num_inliers < min_pairs:
             step.reason = (f"only {pairs.num_inliers} point pairs (need {min_pairs}; {frame.num_features} features "
-                           f"detected, {frame.num_valid} with valid depth, {pairs.num_matches} matched)")
+                           f"detected, {frame.num_valid} with valid depth, {pairs.num_matches} matched)"
+                           f"{self._no_depth_note(frame)}")
             return step
         # time between the two captures: the stamps' difference corrected by the frame clock
         dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)

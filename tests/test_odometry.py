@@ -49,7 +49,13 @@ def test_register_frame_with_zero_depth_is_lost():
     vo = VisualOdometry(Camera.preset("fr1"))
     img = (np.random.default_rng(0).random((480, 640)) * 255).astype(np.uint8)
     step = vo.register_frame(img, np.zeros((480, 640), np.uint16), 1.0)
-    assert step.status == "lost" and "depth" in step.reason
+    assert step.status == "lost" and step.reason.endswith("; the depth image has no depth within [0.5, 5] m "
+                                                          "(all zero or out of range)")
+    # depth in range, but only where no feature is: the features lack depth, the depth image is not empty
+    depth = np.zeros((480, 640), np.uint16)
+    depth[0, 0] = 5000
+    step = vo.register_frame(img, depth, 2.0)
+    assert step.status == "lost" and step.reason.startswith("only 0 features") and "depth image" not in step.reason
 
 
 def test_register_frame_with_wrong_shapes_is_lost():

@@ -133,7 +133,8 @@ def test_groundtruth_dropouts_are_left_out_with_a_warning(small_sample, tmp_path
         v = lines[k].split()
         lines[k] = " ".join(v[:2] + [value] + v[3:]) if value else " ".join(v[:4] + ["0", "0", "0", "0"])
     gt.write_text("\n".join(lines) + "\n")
-    with pytest.warns(UserWarning, match=rf"groundtruth\.txt: 2 line\(s\) .* left out \(line {first + 4}, {first + 7}\)"):
+    left_out = rf"groundtruth\.txt: 2 line\(s\) .* left out \(line {first + 4}, {first + 7}\)"
+    with pytest.warns(UserWarning, match=left_out):
         dropped = TumSequence(seq)
     assert len(dropped.gt_samples[0]) == len(plain.gt_samples[0]) - 2
     assert np.isin(dropped.gt_samples[0], plain.gt_samples[0]).all()
