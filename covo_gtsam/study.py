@@ -132,6 +132,16 @@ def _fmt(v, digits: int = 4) -> str:
 SUMMARY_FILES = ("summary.csv", "summary.md")
 
 
+def _summary_sequences(out: Path) -> list[str]:
+    """The sequences (results-folder names) an earlier study's ``summary.csv`` in ``out`` lists; none
+    without a readable one."""
+    try:
+        with open(out / "summary.csv", newline="") as f:
+            return [row["sequence"] for row in csv.DictReader(f) if row.get("sequence")]
+    except (OSError, csv.Error, KeyError, UnicodeDecodeError):
+        return []
+
+
 def write_summary(out: Path, rows: list[dict]) -> None:
     """``summary.csv`` (full precision) and ``summary.md`` (rounded) of the rows."""
     with open(out / "summary.csv", "w", newline="") as f:
@@ -195,9 +205,16 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
         raise ConfigError("evaluate needs at least one sequence")
     _check_inputs(paths)
     out = check_output_dir(Path(out_dir))
+    earlier = _summary_sequences(out)
     # an earlier study's summary and figure go first (also with plots off: never a stale figure)
     prepare_outputs(out, SUMMARY_FILES, ("plots", ("summary.png",)), write_figures=plots)
     names = _names(paths)
+    left = [n for n in earlier if n not in names and (out / n).is_dir()]
+    if left:
+        import warnings
+
+        warnings.warn(f"{out}: the results folders of an earlier study's sequences stay ({', '.join(left)}); "
+                      "the summary lists this study's only", stacklevel=2)
     args = [(p, str(out / n), camera, config, max_frames, plots, topics) for p, n in zip(paths, names)]
     bar = None
     if progress:

@@ -182,3 +182,27 @@ def test_summary_row_takes_the_worst_window_from_the_breakdown():
     assert (row["worst_60_t"], row["worst_60_r"]) == (4.2, 2.9) and set(COLUMNS) <= set(row)
     assert summary_row("s", {"nees_breakdown": {"windows": None}})["worst_60_t"] is None
     assert summary_row("s", {})["worst_60_r"] is None  # no ground truth
+
+
+def test_evaluate_into_a_folder_used_before_names_the_earlier_sequences_left(small_sample, tmp_path, capsys):
+    """The earlier study's results folders of sequences not in this one stay (they are the user's
+    results), and one warning line says so: the new summary lists this study's sequences only."""
+    import csv
+    import shutil
+
+    first = small_sample(3)
+    second = tmp_path / "rgbd_dataset_freiburg1_copy"
+    shutil.copytree(first, second)
+    out = tmp_path / "e"
+    args = ["--out", str(out), "--quiet", "--no-plots", "--workers", "1"]
+    assert main(["evaluate", str(first), str(second), *args]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(first), *args]) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert err == [f"covo: warning: {out}: the results folders of an earlier study's sequences stay "
+                   f"({second.name}); the summary lists this study's only"], err
+    with open(out / "summary.csv") as f:
+        assert [row["sequence"] for row in csv.DictReader(f)] == [first.name]
+    assert (out / second.name / "metrics.json").is_file()
+    assert main(["evaluate", str(first), *args]) == 0  # the summary before listed only this study's
+    assert not capsys.readouterr().err.strip()
