@@ -344,11 +344,11 @@ def log_likelihood(errors: np.ndarray, covs: np.ndarray) -> float:
 
 def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation_factor: bool = True,
                      bases: Mapping[str, np.ndarray] | None = None, fixed: np.ndarray | None = None,
-                     intervals: np.ndarray | int = 1) -> SensorTerms:
+                     intervals: np.ndarray | int = 1, frame_rotation: bool = True) -> SensorTerms:
     """Maximum-likelihood ``kappa, s_r, s_t`` and the sigma of each frame-level term in ``bases``
     from pairs ``intervals`` frame intervals apart (1: consecutive pairs; or one count per pair; the
     library's own calibration, :func:`covo_gtsam.pipeline.calibrate_sequence`, fits consecutive pairs);
-    with ``fit_correlation_factor=False`` kappa stays 1.
+    with ``fit_correlation_factor=False`` kappa stays 1, with ``frame_rotation=False`` ``s_r`` stays 0.
 
     ``errors`` (N, 6): ``Log(T_est^-1 T_true)`` of each pair
     (:func:`covo_gtsam.metrics.relative_pose_tangent_errors`; right perturbation, ``[omega, v]``);
@@ -389,11 +389,12 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
     bases = {k: B for k, B in bases.items() if k not in dead}
     names = list(bases)
 
+    free = np.array([fit_correlation_factor, frame_rotation, True])  # of kappa, s_r, s_t
+
     def params(x: np.ndarray) -> tuple[float, float, float, dict]:
-        p = np.exp(x)
-        if not fit_correlation_factor:
-            p = np.concatenate([[1.0], p])
-        return p[0], p[1], p[2], dict(zip(names, p[3:]))
+        head = np.array([1.0, 0.0, 0.0])
+        head[free] = np.exp(x[:free.sum()])
+        return head[0], head[1], head[2], dict(zip(names, np.exp(x[free.sum():])))
 
     def cost(x: np.ndarray) -> float:
         kappa, s_r, s_t, sig = params(x)
@@ -410,7 +411,7 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
     best = None
     for shift in (0.0, 1.0, 2.0, 3.0) if fit_correlation_factor else (0.0,):
         x0 = start + np.array([shift, -0.3 * shift, -0.3 * shift])
-        x0 = np.concatenate([x0 if fit_correlation_factor else x0[1:], term_start])
+        x0 = np.concatenate([x0[free], term_start])
         res = minimize(cost, x0, method="Nelder-Mead", options=search)
         if best is None or res.fun < best.fun:
             best = res

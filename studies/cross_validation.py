@@ -496,9 +496,10 @@ def whole_sequence_table(data: Path) -> list[str]:
 
 
 def speed_term_table(data: Path) -> list[str]:
-    """The default terms with one more: a rotation error per axis growing with the pair's estimated
-    angular speed, ``sigma^2 |omega|^2 I`` (a timing error of the whole frame, the same about every
-    axis), fitted on one half of fr1_rpy and checked on the other and on fr1_desk."""
+    """The default terms; the same with one more, a rotation error per axis growing with the pair's
+    estimated angular speed, ``sigma^2 |omega|^2 I`` (a timing error of the whole frame, the same about
+    every axis); that term instead of the frame term; and neither. Fitted on one half of fr1_rpy and
+    checked on the other and on fr1_desk."""
     from covo_gtsam.calibration import log_likelihood
 
     def with_speed(p: dict) -> dict:
@@ -509,25 +510,55 @@ def speed_term_table(data: Path) -> list[str]:
 
     rpy, desk = with_speed(per_point_pairs(data, RPY)), with_speed(per_point_pairs(data, DESK))
     A = rpy["end"] <= 119
+    models = {"default": (DEFAULT_TERMS, True), "default + speed": ((*DEFAULT_TERMS, "speed"), True),
+              "speed instead of the frame term": ((*DEFAULT_TERMS, "speed"), False),
+              "default without the frame term": (DEFAULT_TERMS, False)}
     lines = ["## A rotation term growing with the angular speed", "",
-             "The default terms, and the same with one more: a rotation error of sigma times the pair's estimated "
-             "angular speed about each axis (a whole frame's timing error, alike about every axis), fitted on the "
-             "consecutive pairs of one half of fr1_rpy. Log-likelihood per pair and ANEES t / r on each check; the "
-             "frame term (constant per frame interval) as fitted alongside.", "",
-             "| fitted on | terms | frame term (deg) | speed term (ms) | checked on | ANEES t / r | log-likelihood |",
-             "|---|---|---|---|---|---|---|"]
+             "The default terms; the same with one more, a rotation error of sigma times the pair's estimated "
+             "angular speed about each axis (a whole frame's timing error, alike about every axis); that term in "
+             "place of the frame term (a rotation error per frame interval, constant); and neither. Fitted on the "
+             "consecutive pairs of one half of fr1_rpy. Log-likelihood per pair and ANEES t / r on each check.", "",
+             "| fitted on | terms | frame term (deg) | speed term (ms) | latency (ms) | checked on | ANEES t / r | "
+             "log-likelihood |", "|---|---|---|---|---|---|---|---|"]
     for name, mask in (("A", A), ("B", ~A)):
         train = subset(rpy, mask & rpy["fit_ok"])
-        for terms in (DEFAULT_TERMS, (*DEFAULT_TERMS, "speed")):
+        for label, (terms, frame) in models.items():
             fit = fit_sensor_terms(train["err"], train["cov"], False, bases={n: train["bases"][n] for n in terms},
-                                   fixed=train["fixed"])
+                                   fixed=train["fixed"], frame_rotation=frame)
             speed = f"{1e3 * fit.sigmas['speed']:.2f}" if "speed" in terms else "—"
             for check, held in (("A" if name == "B" else "B", subset(rpy, ~mask)), ("fr1_desk", desk)):
                 covs = fit.covariances(held["cov"], {n: held["bases"][n] for n in terms}) + held["fixed"]
                 nt, nr = anees_cells(held["err"], covs)
-                lines.append(f"| {name} | {'default + speed' if 'speed' in terms else 'default'} | "
-                             f"{fit.frame_sigma_rot_deg:.3f} | {speed} | {check} | {nt.mean():.2f} / {nr.mean():.2f} | "
+                lines.append(f"| {name} | {label} | {fit.frame_sigma_rot_deg:.3f} | {speed} | "
+                             f"{1e3 * fit.sigmas['latency']:.2f} | {check} | {nt.mean():.2f} / {nr.mean():.2f} | "
                              f"{log_likelihood(held['err'], covs):.2f} |")
+    return lines + [""] + twist_change_lines(rpy)
+
+
+def twist_change_lines(p: dict) -> list[str]:
+    """The consecutive pairs' rotation error against the change of the pair's rotation from the
+    pair before, ``w_k - w_(k-1)`` (``w`` the rotation vector of a pair), true and estimated: the
+    least-squares factor ``c`` of ``error = c (w_k - w_(k-1))`` over the three axes and the share
+    of the error's variance it explains."""
+    w_true, w_est = se3_log(p["T_true"])[:, :3], se3_log(p["T_est"])[:, :3]
+    lines = ["## The rotation error against the change of the pair's rotation", "",
+             "The rotation error of a pair (the truth minus the estimate) against the change of the pair's rotation "
+             "from the pair before, true or estimated by the run: the factor `c` of `error = c (w_k - w_(k-1))` "
+             "fitted over the three axes and the share of the error's variance it explains; the RMS per axis of "
+             "the true change and of the estimated change's own error.", "",
+             "| pairs | c, true change | explained | c, estimated change | explained | true change RMS (deg) | "
+             "its estimate's error RMS (deg) |", "|---|---|---|---|---|---|---|"]
+    for label, lo, hi in (("frames 1-119", 1, 119), ("frames 120-239", 120, 239)):
+        k = np.flatnonzero((p["end"] >= lo) & (p["end"] <= hi) & (np.r_[-1, p["end"][:-1]] == p["end"] - 1))
+        y = p["err"][k, :3].ravel()
+        cells = []
+        for w in (w_true, w_est):
+            x = (w[k] - w[k - 1]).ravel()
+            c = x @ y / (x @ x)
+            cells.append(f"{c:+.2f} | {1 - np.sum((y - c * x) ** 2) / np.sum(y**2):.2f}")
+        true, est = w_true[k] - w_true[k - 1], w_est[k] - w_est[k - 1]
+        lines.append(f"| {label} | {' | '.join(cells)} | {np.rad2deg(np.sqrt(np.mean(true**2))):.3f} | "
+                     f"{np.rad2deg(np.sqrt(np.mean((est - true) ** 2))):.3f} |")
     return lines + [""]
 
 

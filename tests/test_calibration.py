@@ -311,6 +311,30 @@ def test_fit_recovers_frame_level_terms():
         fit_sensor_terms(e, P, bases={"timing": bases["timing"][:5]})
 
 
+def test_fit_without_the_rotation_frame_term_holds_it_at_zero():
+    """Errors drawn without a rotation frame term but with a timing term: the fit that holds ``s_r``
+    at 0 gives back the timing term and kappa 1; errors drawn with a frame term are then less likely
+    under that fit than under the full one, which finds the frame term."""
+    from covo_gtsam.calibration import timing_covariance
+
+    rng = np.random.default_rng(7)
+    n = 2000
+    P = _random_spd(rng, n) * rng.uniform(0.2, 3.0, size=(n, 1, 1)) * 0.02
+    bases = {"timing": timing_covariance(rng.normal(size=(n, 2, 6)) * np.array([1.0] * 3 + [0.3] * 3))}
+    for s_r in (0.0, np.deg2rad(0.3)):
+        C = sensor_covariance(P, 1.0, s_r, 0.0005, 1, bases, {"timing": 0.003})
+        e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=(n, 6)))
+        held = fit_sensor_terms(e, P, False, bases=bases, frame_rotation=False)
+        full = fit_sensor_terms(e, P, False, bases=bases)
+        assert held.frame_sigma_rot_deg == 0.0 and held.correlation_factor == 1.0
+        if s_r == 0.0:
+            assert held.sigmas["timing"] == pytest.approx(0.003, rel=0.1)
+            assert full.log_likelihood - held.log_likelihood < 0.01
+        else:
+            assert full.frame_sigma_rot_deg == pytest.approx(0.3, rel=0.1)
+            assert full.log_likelihood - held.log_likelihood > 0.1
+
+
 def test_twist_changes_learn_how_much_of_the_direction_carries_over():
     """Changes about one fixed axis keep the basis's direction (share 0); changes whose axis is new
     each time spread it over all axes (share at least 0.75), the basis's size (trace) kept."""
