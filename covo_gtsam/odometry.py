@@ -261,7 +261,8 @@ class VisualOdometry(DeprecatedStepAccess):
         fe = self.config.frontend
         if frame.num_valid or np.any((frame.depth >= fe.min_depth) & (frame.depth <= fe.max_depth)):
             return ""
-        return f"; the depth image has no depth within [{fe.min_depth:g}, {fe.max_depth:g}] m (all zero or out of range)"
+        return (f"; the depth image has no depth within [{fe.min_depth:g}, {fe.max_depth:g}] m "
+                "(all zero or out of range)")
 
     def _new_segment_step(self, frame: FrameData, lost: OdometryStep) -> OdometryStep:
         """A new segment at ``frame`` (it could not be matched after a run of lost frames); ``lost``

@@ -28,6 +28,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import warnings
 from pathlib import Path
 
 from .errors import ConfigError, DatasetError
@@ -211,8 +212,6 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
     names = _names(paths)
     left = [n for n in earlier if n not in names and (out / n).is_dir()]
     if left:
-        import warnings
-
         warnings.warn(f"{out}: the results folders of an earlier study's sequences stay ({', '.join(left)}); "
                       "the summary lists this study's only", stacklevel=2)
     args = [(p, str(out / n), camera, config, max_frames, plots, topics) for p, n in zip(paths, names)]
