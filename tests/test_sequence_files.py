@@ -148,6 +148,24 @@ def test_groundtruth_dropouts_are_left_out_with_a_warning(small_sample, tmp_path
     assert json.loads((tmp_path / "o" / "metrics.json").read_text())["ate"] is not None
 
 
+def test_groundtruth_samples_beyond_the_limit_are_left_out_before_interpolation(small_sample):
+    """A sample 2e9 m away, weighted by interpolation, would come out below the 1e9 m limit and
+    enter the metrics: it is left out before, with a warning naming it, like a non-finite one."""
+    seq = small_sample(5)
+    plain = TumSequence(seq)
+    gt = seq / "groundtruth.txt"
+    lines = gt.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if not ln.startswith("#")) + 4
+    v = lines[k].split()
+    lines[k] = " ".join([v[0], "2e9"] + v[2:])
+    gt.write_text("\n".join(lines) + "\n")
+    with pytest.warns(UserWarning, match=rf"1 sample\(s\) more than 1e\+09 m from the origin left out \(stamp {v[0]}"):
+        far = TumSequence(seq)
+    assert len(far.gt_samples[0]) == len(plain.gt_samples[0]) - 1
+    assert np.abs(far.groundtruth[far.gt_valid][:, :3, 3]).max() < 10
+    assert far.gt_valid.sum() == plain.gt_valid.sum()
+
+
 def test_a_non_finite_stamp_in_a_trajectory_file_is_an_error(tmp_path):
     from covo_gtsam.io import load_tum_trajectory
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -265,6 +266,12 @@ class TumSequence:
         gt_file = self.path / "groundtruth.txt"
         if gt_file.is_file():
             stamps, poses = load_tum_trajectory(gt_file, skip_invalid=True)
+            far = ~usable_poses(poses)
+            if far.any():  # before interpolating: a weight would bring such a sample below the limit
+                warnings.warn(f"{gt_file}: {int(far.sum())} sample(s) more than {MAX_GT_COORDINATE:g} m from the "
+                              f"origin left out (stamp {', '.join(f'{t:.4f}' for t in stamps[far][:3])}"
+                              f"{', ...' if far.sum() > 3 else ''})", stacklevel=2)
+                stamps, poses = stamps[~far], poses[~far]
             if stamps.size:
                 self.gt_samples = (stamps, poses)
                 self.groundtruth, self.gt_valid = interpolate_poses(stamps, poses, self.timestamps, max_gap)
