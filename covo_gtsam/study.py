@@ -91,7 +91,9 @@ def run_one(path: str, out_dir: str, camera: str | None = None, config: dict | N
     from .config import OdometryConfig
     from .pipeline import run_sequence
 
-    seq, scale = _open_sequence(path, camera, topics or {})
+    with warnings.catch_warnings():  # what opening the sequence warns about was shown when it was checked
+        warnings.simplefilter("ignore", UserWarning)
+        seq, scale = _open_sequence(path, camera, topics or {})
     cfg = OdometryConfig.from_dict(config) if config else OdometryConfig()
     if scale is not None:
         cfg = cfg.replace(sensor={"depth_scale": scale})
@@ -112,13 +114,18 @@ def _names(paths: list[str]) -> list[str]:
     return out
 
 
-def _check_inputs(paths: list[str]) -> None:
+def _check_inputs(paths: list[str], camera: str | None, topics: dict | None) -> None:
+    """Every sequence opened (its lists, ground truth and camera) before the first run: one that
+    cannot be used stops the study before hours of runs are spent on the others."""
     from .datasets.rosbag import is_bag
 
     for p in paths:
         if not (is_bag(p) or (Path(p) / "rgb.txt").is_file()):
             raise DatasetError(f"{p}: neither a TUM sequence folder (rgb.txt) nor a ROS bag (.bag file or "
                                "folder with metadata.yaml)")
+    for p in paths:
+        seq, _ = _open_sequence(p, camera, topics or {})
+        _ = seq.camera  # a TUM folder's camera comes from its name: an error when it cannot
 
 
 def _fmt(v, digits: int = 4) -> str:
@@ -204,7 +211,7 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
     paths = [os.path.abspath(os.fspath(p)) for p in paths]
     if not paths:
         raise ConfigError("evaluate needs at least one sequence")
-    _check_inputs(paths)
+    _check_inputs(paths, camera, topics)
     out = check_output_dir(Path(out_dir))
     earlier = _summary_sequences(out)
     # an earlier study's summary and figure go first (also with plots off: never a stale figure)

@@ -206,3 +206,22 @@ def test_evaluate_into_a_folder_used_before_names_the_earlier_sequences_left(sma
     assert (out / second.name / "metrics.json").is_file()
     assert main(["evaluate", str(first), *args]) == 0  # the summary before listed only this study's
     assert not capsys.readouterr().err.strip()
+
+
+def test_evaluate_checks_every_sequence_before_the_first_run(small_sample, tmp_path, capsys):
+    """A sequence that exists but cannot be used (no frame with both images; a folder name without
+    the camera) stops the study before any run, not after the runs before it."""
+    import shutil
+
+    good = small_sample(3)
+    for name, damage in (("rgbd_dataset_freiburg1_emptyrgb", lambda s: (s / "rgb.txt").write_text("# none\n")),
+                         ("no_camera_in_this_name", lambda s: None)):
+        bad = tmp_path / name
+        shutil.copytree(good, bad)
+        damage(bad)
+        out = tmp_path / f"e_{name}"
+        assert main(["evaluate", str(good), str(bad), "--out", str(out), "--quiet", "--no-plots",
+                     "--workers", "1"]) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1 and err[0].startswith(f"covo: error: {bad}"), err
+        assert not out.exists() or not any(out.iterdir())  # no run was started
