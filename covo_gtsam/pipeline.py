@@ -274,6 +274,9 @@ def run_sequence(
         raise ConfigError(f"run_sequence needs a sequence (e.g. TumSequence) or its path, got {type(seq).__name__}")
     config = config or OdometryConfig()
     vo = VisualOdometry(seq.camera if camera is None else camera, config)
+    source = getattr(seq, "path", None)
+    if source is not None and Path(source).is_dir() and Path(out_dir).resolve() == Path(source).resolve():
+        raise DatasetError(f"{out_dir}: is the sequence's own folder; write the results into another one (--out)")
     out = check_output_dir(out_dir)
     with FolderLock(out):
         from .plots import RUN_PLOTS

@@ -147,6 +147,18 @@ def test_second_writer_into_the_same_folder_is_refused(small_sample, tmp_path, c
         assert main([*args, "--out", str(out), "--quiet", "--no-plots"]) == 0
 
 
+def test_results_are_not_written_into_the_sequence_folder(small_sample, tmp_path, capsys):
+    """``--out`` naming the sequence's own folder (however spelt) is refused before anything is written."""
+    seq = small_sample(2)
+    before = sorted(p.name for p in seq.rglob("*"))
+    for out in (seq, seq / ".", seq / "rgb" / ".."):
+        assert main(["run", str(seq), "--out", str(out), "--quiet", "--no-plots"]) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert err == [f"covo: error: {out}: is the sequence's own folder; write the results into another one "
+                       "(--out)"], err
+    assert sorted(p.name for p in seq.rglob("*")) == before
+
+
 def test_run_leaves_the_folder_unlocked(small_sample, tmp_path, capsys):
     seq, out = small_sample(2), tmp_path / "out"
     assert main(["run", str(seq), "--out", str(out), "--quiet", "--no-plots"]) == 0
