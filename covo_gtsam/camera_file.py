@@ -138,11 +138,17 @@ def plumb_bob(where: str | os.PathLike, model: str, D) -> tuple[float, float, fl
     return tuple(D[:5] + [0.0] * (5 - min(5, len(D))))
 
 
+def _and_unknown(unknown: list[str]) -> str:
+    """``"; unknown keys ..."`` for a file that also misses keys (a misspelt key is both), else ``""``."""
+    return f"; unknown keys {', '.join(map(str, unknown))}" if unknown else ""
+
+
 def _from_yaml(p: Path, data: dict) -> tuple[dict, float | None]:
     missing = [k for k in ("image_width", "image_height", "camera_matrix") if k not in data]
-    if missing:
-        raise ConfigError(f"{p}: missing keys {', '.join(missing)} (ROS camera_calibration YAML)")
     unknown = sorted(set(data) - _YAML_KEYS)
+    if missing:
+        raise ConfigError(f"{p}: missing keys {', '.join(missing)} (ROS camera_calibration YAML)"
+                          f"{_and_unknown(unknown)}")
     if unknown:
         raise ConfigError(f"{p}: unknown keys {', '.join(unknown)}")
     K = _matrix_data(p, data, "camera_matrix", 9, shape=(3, 3))
@@ -160,10 +166,10 @@ def _from_yaml(p: Path, data: dict) -> tuple[dict, float | None]:
 
 def _from_table(p: Path, data: dict) -> tuple[dict, float]:
     missing = [k for k in _REQUIRED if k not in data]
+    unknown = sorted(set(data) - set(_REQUIRED) - set(_DIST) - {"name"})
     if missing:
         raise ConfigError(f"{p}: missing keys {', '.join(missing)} (a camera file has {' '.join(_REQUIRED)}, "
-                          f"optional {' '.join(_DIST)} name)")
-    unknown = sorted(set(data) - set(_REQUIRED) - set(_DIST) - {"name"})
+                          f"optional {' '.join(_DIST)} name){_and_unknown(unknown)}")
     if unknown:
         raise ConfigError(f"{p}: unknown keys {', '.join(unknown)}")
     values = {k: _number(p, k, data[k]) for k in ("fx", "fy", "cx", "cy")}

@@ -107,6 +107,7 @@ def test_camera_file_depth_scale_reaches_the_run(sample_dir, tmp_path):
 @pytest.mark.parametrize("content, needle", [
     ({k: v for k, v in FR1.items() if k not in ("fx", "depth_scale")}, "missing keys fx, depth_scale"),
     ({**FR1, "fz": 1.0}, "unknown keys fz"),
+    ({**{k: v for k, v in FR1.items() if k != "fx"}, "fxx": FR1["fx"]}, "unknown keys fxx"),  # and fx missing
     ({**FR1, "fx": "big"}, "fx must be a finite number"),
     ({**FR1, "width": 640.5}, "width must be a positive integer"),
     ({**FR1, "fx": -1.0}, "focal lengths must be positive"),
@@ -127,7 +128,10 @@ def test_yaml_missing_keys_and_unknown_camera(tmp_path, capsys, sample_dir):
     pytest.importorskip("yaml")
     f = tmp_path / "cam.yaml"
     f.write_text(FR1_YAML.replace("image_width: 640\n", ""))
-    with pytest.raises(ConfigError, match="missing keys image_width"):
+    with pytest.raises(ConfigError, match=r"missing keys image_width \(ROS camera_calibration YAML\)$"):
+        load_camera_file(f)
+    f.write_text(FR1_YAML.replace("image_width: 640\n", "image_widht: 640\n"))
+    with pytest.raises(ConfigError, match="missing keys image_width .*; unknown keys image_widht"):
         load_camera_file(f)
     assert main(["run", str(sample_dir), "--out", str(tmp_path / "o"), "--camera", "fr9", "--quiet"]) == 2
     err = capsys.readouterr().err

@@ -42,6 +42,12 @@ def test_readme_odometry_example_runs(sample_dir, capsys):
     history = ns["history"]
     assert [s.status for s in history] == ["first", "tracked", "tracked"] and ns["poses"].shape == (3, 4, 4)
     assert "lost" not in capsys.readouterr().out
+    graph, initial = ns["graph"], ns["initial"]
+    assert graph.size() == 2 and initial.size() == 3  # a factor per relative pose, an initial pose per frame
+    for i, step in enumerate(list(history)[1:]):
+        factor = graph.at(i)
+        assert factor.measured().equals(step.relative, 1e-12)
+        np.testing.assert_allclose(np.linalg.inv(factor.noiseModel().information()), step.covariance, rtol=1e-8)
 
 
 def test_public_api_is_importable_from_the_package():

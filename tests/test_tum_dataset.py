@@ -263,6 +263,14 @@ def test_listed_file_missing_is_kept_and_reported(tmp_path):
     assert isinstance(info.value, CovoError)
 
 
+@pytest.mark.parametrize("name", ["rgb.txt", "depth.txt"])
+def test_an_empty_image_list_says_so(tmp_path, name):
+    seq = make_sequence(tmp_path)
+    (seq / name).write_text("# timestamp filename\n")
+    with pytest.raises(DatasetError, match=rf"{name.replace('.', '[.]')}: lists no image$"):
+        TumSequence(seq)
+
+
 def test_malformed_line_names_file_and_line(tmp_path):
     seq = make_sequence(tmp_path)
     lines = (seq / "rgb.txt").read_text().splitlines()

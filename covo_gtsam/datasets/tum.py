@@ -229,6 +229,9 @@ class TumSequence:
                 raise DatasetError(f"{self.path / f}: missing (a TUM sequence folder has rgb.txt and depth.txt)")
         rgb_t, rgb_n = read_file_list(self.path / "rgb.txt")
         dep_t, dep_n = read_file_list(self.path / "depth.txt")
+        for name, stamps in (("rgb.txt", rgb_t), ("depth.txt", dep_t)):
+            if not len(stamps):
+                raise DatasetError(f"{self.path / name}: lists no image")
         pairs = associate(rgb_t, dep_t, max_dt)
         if not pairs:
             raise DatasetError(
