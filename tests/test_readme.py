@@ -95,3 +95,21 @@ def test_quick_start_test_command_is_the_one_ci_runs():
     install, pytest_line = command.split(" && ")[-2:]
     assert install in ci and pytest_line in ci
     assert "--run-slow" in pytest_line.split()
+
+
+def test_readme_command_synopsis_lists_every_option():
+    """The README's command-line synopsis names every option of every command's parser."""
+    import argparse
+
+    from covo_gtsam.cli import build_parser
+
+    text = README.read_text()
+    block = text[text.index("## Command line"):]
+    block = block[block.index("```text\n") + 8:block.index("```", block.index("```text\n") + 8)]
+    synopsis = {m.group(1): m.group(2) for m in re.finditer(r"^covo ([a-z-]+)(.*?)(?=^covo |\Z)", block, re.S | re.M)}
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(synopsis) == set(sub.choices)
+    for name, parser in sub.choices.items():
+        options = {o for a in parser._actions for o in a.option_strings if o.startswith("--") and o != "--help"}
+        missing = sorted(o for o in options if not re.search(rf"{re.escape(o)}\b", synopsis[name]))
+        assert not missing, f"covo {name}: {missing}"
