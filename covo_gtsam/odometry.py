@@ -44,6 +44,8 @@ __all__ = ["VisualOdometry", "OdometryConfig", "OdometryStep", "StepStatus", "PO
 #: reported standard deviation and those by at most 1.1 %, for about a third of the solving time
 #: (Levenberg-Marquardt iterations per pair 3.3 -> 2.1).
 REWEIGHT_TOL_RAD = 1e-2
+#: What a lost frame's reason says when no pixel of its depth image is in the depth range.
+EMPTY_DEPTH = "the depth image has no depth"
 
 
 @dataclass(frozen=True)
@@ -261,8 +263,7 @@ class VisualOdometry(DeprecatedStepAccess):
         fe = self.config.frontend
         if frame.num_valid or np.any((frame.depth >= fe.min_depth) & (frame.depth <= fe.max_depth)):
             return ""
-        return (f"; the depth image has no depth within [{fe.min_depth:g}, {fe.max_depth:g}] m "
-                "(all zero or out of range)")
+        return f"; {EMPTY_DEPTH} within [{fe.min_depth:g}, {fe.max_depth:g}] m (all zero or out of range)"
 
     def _new_segment_step(self, frame: FrameData, lost: OdometryStep) -> OdometryStep:
         """A new segment at ``frame`` (it could not be matched after a run of lost frames); ``lost``

@@ -51,7 +51,7 @@ from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData
 from .g2o import G2oWriter
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
-from .odometry import OdometryStep, VisualOdometry
+from .odometry import EMPTY_DEPTH, OdometryStep, VisualOdometry
 from .prefetch import Prefetcher
 from .steps import StepHistory
 from .validation import check_int
@@ -293,6 +293,15 @@ def run_sequence(
             return _run(vo, StepHistory(keep_error_bases), seq, out, config, max_frames, plots, progress, bag_out)
 
 
+def _naming_the_depth_file(step, seq, i: int):
+    """``step``, its reason naming frame ``i``'s depth image file where the frame was lost for an empty
+    depth image (a TUM folder's; a bag's images have no file)."""
+    paths = getattr(seq, "depth_paths", None)
+    if paths is not None and step.reason and EMPTY_DEPTH in step.reason:
+        step.reason = step.reason.replace(EMPTY_DEPTH, EMPTY_DEPTH.replace("image", f"image {paths[i]}", 1), 1)
+    return step
+
+
 def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, config: OdometryConfig,
          max_frames: int | None, plots: bool, progress: bool, bag_out: str | None) -> RunResult:
     """The frame loop and the results of :func:`run_sequence`, in a checked and locked folder; the
@@ -331,9 +340,10 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
                     frame = frames.get(i)
                     t = float(seq.timestamps[i])
                     if isinstance(frame, CovoError):
-                        step = history.add(vo.mark_lost(t, str(frame)))
+                        step = vo.mark_lost(t, str(frame))
                     else:
-                        step = history.add(vo.register_frame(frame, timestamp=t))
+                        step = vo.register_frame(frame, timestamp=t)
+                    history.add(_naming_the_depth_file(step, seq, i))
                     if step.has_pose:
                         traj_w.write(t, step.pose.matrix())
                         g2o_w.vertex(i, step.pose.matrix())

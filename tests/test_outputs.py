@@ -176,8 +176,9 @@ def test_every_frame_lost_is_loud_with_exit_code_3(small_sample, tmp_path, capsy
     assert "no frame could be tracked" in captured.err and "all 3 frames are lost" in captured.err
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["tracked_frames"] == 0 and len(metrics["lost"]) == 3
-    assert re.fullmatch(r"only 0 features with valid depth \(of [1-9]\d* detected; need \d+\); the depth image "
-                        r"has no depth within \[0\.5, 5\] m \(all zero or out of range\)",
+    first_depth = re.escape(str(sorted((seq / "depth").glob("*.png"))[0]))
+    assert re.fullmatch(rf"only 0 features with valid depth \(of [1-9]\d* detected; need \d+\); the depth image "
+                        rf"{first_depth} has no depth within \[0\.5, 5\] m \(all zero or out of range\)",
                         metrics["lost"][0]["reason"]), metrics["lost"][0]
 
 
@@ -194,8 +195,10 @@ def test_no_relative_pose_at_all_is_loud_with_exit_code_3(small_sample, tmp_path
     assert metrics["tracked_frames"] == 1 and len(metrics["lost"]) == 3
     # the reason says which stage ran short: features were found, none had depth
     pattern = (r"only 0 point pairs \(need \d+; [1-9]\d* features detected, 0 with valid depth, 0 matched\); "
-               r"the depth image has no depth within")
-    assert all(re.search(pattern, lost["reason"]) for lost in metrics["lost"]), metrics["lost"]
+               r"the depth image {} has no depth within")
+    depths = sorted((seq / "depth").glob("*.png"))[1:]
+    assert all(re.search(pattern.format(re.escape(str(png))), lost["reason"])
+               for lost, png in zip(metrics["lost"], depths, strict=True)), metrics["lost"]
     assert not [line for line in (out / "relative.txt").read_text().splitlines() if not line.startswith("#")]
 
 
