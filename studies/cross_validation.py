@@ -513,6 +513,7 @@ def speed_term_table(data: Path) -> list[str]:
     models = {"default": (DEFAULT_TERMS, True), "default + speed": ((*DEFAULT_TERMS, "speed"), True),
               "speed instead of the frame term": ((*DEFAULT_TERMS, "speed"), False),
               "default without the frame term": (DEFAULT_TERMS, False)}
+    held_out: dict[str, list] = {label: [] for label in models}  # (speed, rotation NEES) of the checks on fr1_rpy
     lines = ["## A rotation term growing with the angular speed", "",
              "The default terms; the same with one more, a rotation error of sigma times the pair's estimated "
              "angular speed about each axis (a whole frame's timing error, alike about every axis); that term in "
@@ -529,9 +530,22 @@ def speed_term_table(data: Path) -> list[str]:
             for check, held in (("A" if name == "B" else "B", subset(rpy, ~mask)), ("fr1_desk", desk)):
                 covs = fit.covariances(held["cov"], {n: held["bases"][n] for n in terms}) + held["fixed"]
                 nt, nr = anees_cells(held["err"], covs)
+                if check != "fr1_desk":
+                    held_out[label].append((true_motion(held["T_true"], held["t_ref"], held["t_cur"])[0], nr))
                 lines.append(f"| {name} | {label} | {fit.frame_sigma_rot_deg:.3f} | {speed} | "
                              f"{1e3 * fit.sigmas['latency']:.2f} | {check} | {nt.mean():.2f} / {nr.mean():.2f} | "
                              f"{log_likelihood(held['err'], covs):.2f} |")
+    edges = (0.0, 0.5, 0.8, 1.2, 1.6, np.inf)
+    lines += ["", "Where the rotation error goes with the speed: the rotation ANEES of fr1_rpy's pairs by their true "
+              "angular speed (rad/s), each half under the fit on the other (pairs per bin in brackets).", "",
+              "| terms | " + " | ".join(f"{lo:g}-{hi:g}" if np.isfinite(hi) else f"{lo:g}+"
+                                      for lo, hi in zip(edges[:-1], edges[1:])) + " |",
+              "|---|" + "---|" * (len(edges) - 1)]
+    for label in ("default", "speed instead of the frame term", "default without the frame term"):
+        speed, nr = (np.concatenate(v) for v in zip(*held_out[label]))
+        cells = [f"{nr[m].mean():.2f} ({m.sum()})" for m in ((speed >= lo) & (speed < hi)
+                                                            for lo, hi in zip(edges[:-1], edges[1:]))]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines + [""] + twist_change_lines(rpy)
 
 
