@@ -34,6 +34,7 @@ _PUBLIC = {
     "relative_pose_nees": "metrics",
     "chi2_quantile": "chi2",
     "CovoError": "errors",
+    "CovoWarning": "errors",
 }
 
 __all__ = ["__version__", *_PUBLIC]

@@ -360,12 +360,12 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _show_warning(show):
-    """``warnings.showwarning`` that prints the package's own warnings (a ``UserWarning`` from its
-    code) as one ``covo: warning:`` line on stderr and leaves others to ``show``."""
-    package = os.path.dirname(os.path.abspath(__file__))
+    """``warnings.showwarning`` that prints the package's own warnings (:class:`~covo_gtsam.errors.CovoWarning`)
+    as one ``covo: warning:`` line on stderr and leaves others to ``show``."""
+    from .errors import CovoWarning
 
     def showwarning(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, UserWarning) and os.path.abspath(filename).startswith(package + os.sep):
+        if issubclass(category, CovoWarning):
             print(f"covo: warning: {message}", file=sys.stderr)
         else:
             show(message, category, filename, lineno, file, line)

@@ -1,4 +1,5 @@
-"""Exceptions of the package. Every failure the package reports is a :class:`CovoError`."""
+"""Exceptions of the package. Every failure the package reports is a :class:`CovoError`; every
+warning about its input a :class:`CovoWarning`."""
 
 
 class CovoError(Exception):
@@ -31,3 +32,7 @@ class DegenerateGeometryError(EstimationError):
 
 class CovarianceError(EstimationError):
     """The pose covariance could not be computed or is not a valid covariance."""
+
+
+class CovoWarning(UserWarning):
+    """Input the package works around (e.g. ground-truth samples left out), and says so."""

@@ -25,7 +25,7 @@ from typing import IO
 
 import numpy as np
 
-from .errors import ConfigError, DatasetError, InputError
+from .errors import ConfigError, CovoWarning, DatasetError, InputError
 from .geometry import pose_from_tum, pose_to_tum
 
 __all__ = [
@@ -172,7 +172,7 @@ def load_tum_trajectory(path: str | os.PathLike, skip_invalid: bool = False) -> 
     if skip_invalid and bad.any():
         shown = ", ".join(str(n) for n in line_nos[bad][:5]) + (", ..." if bad.sum() > 5 else "")
         warnings.warn(f"{path}: {int(bad.sum())} line(s) with a non-finite value or a zero quaternion left out "
-                      f"(line {shown})", stacklevel=2)
+                      f"(line {shown})", CovoWarning, stacklevel=2)
         rows, line_nos = rows[~bad], line_nos[~bad]
     elif not np.isfinite(rows[:, 0]).all():
         raise DatasetError(f"{path}:{line_nos[np.flatnonzero(~np.isfinite(rows[:, 0]))[0]]}: non-finite timestamp")

@@ -78,12 +78,26 @@ class RunResult:
     plot_files: list[Path] | None = field(default_factory=list)
 
 
+#: Files that make a folder a sequence's own: a TUM sequence, a ROS 2 bag.
+SEQUENCE_FILES = {"rgb.txt": "a TUM sequence's rgb.txt", "metadata.yaml": "a ROS 2 bag's metadata.yaml"}
+
+
+def check_not_a_sequence(out_dir: str | os.PathLike) -> None:
+    """DatasetError when the folder ``out_dir`` holds a sequence (:data:`SEQUENCE_FILES`): results are
+    never written into a dataset."""
+    for name, what in SEQUENCE_FILES.items():
+        if (Path(out_dir) / name).is_file():
+            raise DatasetError(f"{out_dir}: is a sequence's folder (it holds {what}); write the results into "
+                               "another one (--out)")
+
+
 def check_output_dir(out_dir: str | os.PathLike) -> Path:
     """Create ``out_dir`` if needed and check it is writable.
 
     Raises:
         ConfigError: the path is empty (it would write into the current folder).
-        DatasetError: it exists and is not a folder, or cannot be created or written.
+        DatasetError: it exists and is not a folder, it is a sequence's folder (:func:`check_not_a_sequence`),
+            or it cannot be created or written.
     """
     if not os.fspath(out_dir).strip():
         raise ConfigError("the output folder is an empty path (that would write into the current folder); "
@@ -91,6 +105,7 @@ def check_output_dir(out_dir: str | os.PathLike) -> Path:
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise DatasetError(f"{out_dir}: exists and is not a folder; cannot write results into it")
+    check_not_a_sequence(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         probe = out_dir / ".covo_write_test"
@@ -274,9 +289,6 @@ def run_sequence(
         raise ConfigError(f"run_sequence needs a sequence (e.g. TumSequence) or its path, got {type(seq).__name__}")
     config = config or OdometryConfig()
     vo = VisualOdometry(seq.camera if camera is None else camera, config)
-    source = getattr(seq, "path", None)
-    if source is not None and Path(source).is_dir() and Path(out_dir).resolve() == Path(source).resolve():
-        raise DatasetError(f"{out_dir}: is the sequence's own folder; write the results into another one (--out)")
     out = check_output_dir(out_dir)
     with FolderLock(out):
         from .plots import RUN_PLOTS
@@ -432,7 +444,9 @@ def calibrate_sequence(
     from .metrics import relative_pose_tangent_errors
 
     if seq.groundtruth is None:
-        raise DatasetError(f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
+        gt = Path(seq.path) / "groundtruth.txt"
+        raise DatasetError(f"{gt}: has no usable sample; calibration needs ground truth" if gt.is_file()
+                           else f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
     config = config or OdometryConfig()
     span_prior = config.sensor.span_factor
     priors = {k: getattr(config.sensor, ERROR_TERMS[k]) for k in PRIOR_TERMS}

@@ -31,7 +31,7 @@ import os
 import warnings
 from pathlib import Path
 
-from .errors import ConfigError, DatasetError
+from .errors import ConfigError, CovoWarning, DatasetError
 
 __all__ = ["COLUMNS", "evaluate_sequences", "run_one", "summary_row"]
 
@@ -115,8 +115,9 @@ def _names(paths: list[str]) -> list[str]:
 
 
 def _check_inputs(paths: list[str], camera: str | None, topics: dict | None) -> None:
-    """Every sequence opened (its lists, ground truth and camera) before the first run: one that
-    cannot be used stops the study before hours of runs are spent on the others."""
+    """Every TUM folder opened (its lists, ground truth and camera) before the first run: one that
+    cannot be used stops the study before hours of runs are spent on the others. A bag is checked
+    when its run opens it (opening reads the whole bag)."""
     from .datasets.rosbag import is_bag
 
     for p in paths:
@@ -124,6 +125,8 @@ def _check_inputs(paths: list[str], camera: str | None, topics: dict | None) -> 
             raise DatasetError(f"{p}: neither a TUM sequence folder (rgb.txt) nor a ROS bag (.bag file or "
                                "folder with metadata.yaml)")
     for p in paths:
+        if is_bag(p):
+            continue
         seq, _ = _open_sequence(p, camera, topics or {})
         _ = seq.camera  # a TUM folder's camera comes from its name: an error when it cannot
 
@@ -206,21 +209,23 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
         ConfigError: the scheduler cannot be reached.
     """
     from .parallel import CONNECT_TIMEOUT, map_tasks
-    from .pipeline import check_output_dir, prepare_outputs
+    from .pipeline import check_not_a_sequence, check_output_dir, prepare_outputs
 
     paths = [os.path.abspath(os.fspath(p)) for p in paths]
     if not paths:
         raise ConfigError("evaluate needs at least one sequence")
     _check_inputs(paths, camera, topics)
     out = check_output_dir(Path(out_dir))
+    names = _names(paths)
+    for n in names:  # before anything is written: no sequence's results go into a dataset
+        check_not_a_sequence(out / n)
     earlier = _summary_sequences(out)
     # an earlier study's summary and figure go first (also with plots off: never a stale figure)
     prepare_outputs(out, SUMMARY_FILES, ("plots", ("summary.png",)), write_figures=plots)
-    names = _names(paths)
     left = [n for n in earlier if n not in names and (out / n).is_dir()]
     if left:
         warnings.warn(f"{out}: the results folders of an earlier study's sequences stay ({', '.join(left)}); "
-                      "the summary lists this study's only", stacklevel=2)
+                      "the summary lists this study's only", CovoWarning, stacklevel=2)
     args = [(p, str(out / n), camera, config, max_frames, plots, topics) for p, n in zip(paths, names)]
     bar = None
     if progress:

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from covo_gtsam import odometry
 from covo_gtsam.cli import main
-from covo_gtsam.errors import InputError
+from covo_gtsam.errors import CovoWarning, InputError
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory
 from covo_gtsam.odometry import OdometryConfig, VisualOdometry
 
@@ -137,11 +137,21 @@ def test_run_with_huge_ground_truth_gives_null_metrics_with_reasons(small_sample
 
 
 def test_calibrate_with_huge_ground_truth_is_one_line(small_sample, tmp_path, capsys):
+    """Every sample beyond the limit: each is left out (one warning line), and calibrate stops before
+    its run with one error line; with one sample of each frame pair's left, at the run's end."""
     seq, out = small_sample(11), tmp_path / "out"
+    plain = (seq / "groundtruth.txt").read_text()
     huge_ground_truth(seq)
     assert main(["calibrate", str(seq), "--out", str(out), "--quiet"]) == 2
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-    assert len(err) == 1 and "usable ground truth" in err[0]
+    assert len(err) == 2 and err[0].startswith("covo: warning:") and "more than 1e+09 m" in err[0], err
+    assert err[1] == f"covo: error: {seq / 'groundtruth.txt'}: has no usable sample; calibration needs ground truth"
+    assert not (out / "per_point_run").exists()
+    samples = [ln for ln in plain.splitlines() if not ln.startswith("#")]
+    (seq / "groundtruth.txt").write_text("\n".join(samples[:1]) + "\n")  # one sample: no frame pair inside it
+    assert main(["calibrate", str(seq), "--out", str(out), "--quiet"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "usable ground truth" in err[0], err
     assert check_outputs(out / "per_point_run")["tracked_frames"] == 11  # the run's own outputs are kept
 
 
@@ -151,7 +161,9 @@ def test_analyze_noise_with_huge_ground_truth_prints_no_nan(small_sample, tmp_pa
     code = main(["analyze-noise", str(seq), "--out", str(out), "--quiet", "--no-plots"])
     captured = capsys.readouterr()
     assert not re.search(r"\bnan\b", captured.out + captured.err, re.IGNORECASE)
-    assert code == 2 and "no frame pair could be analysed" in captured.err
+    # every sample is left out (a warning line), so there is no ground truth to analyse against
+    assert code == 2 and "more than 1e+09 m from the origin left out" in captured.err
+    assert "the noise analysis needs groundtruth.txt" in captured.err
 
 
 def test_ground_truth_beyond_the_coordinate_limit_counts_as_missing(small_sample):
@@ -160,7 +172,8 @@ def test_ground_truth_beyond_the_coordinate_limit_counts_as_missing(small_sample
     seq = small_sample(3)
     assert TumSequence(seq).gt_valid.all()
     huge_ground_truth(seq, f"{10 * MAX_GT_COORDINATE:g}")
-    assert not TumSequence(seq).gt_valid.any()
+    with pytest.warns(CovoWarning, match="more than 1e\\+09 m from the origin left out"):
+        assert not TumSequence(seq).gt_valid.any()
 
 
 # ---- whatever the input: no NaN/inf in any output ----------------------------------------------

@@ -147,16 +147,36 @@ def test_second_writer_into_the_same_folder_is_refused(small_sample, tmp_path, c
         assert main([*args, "--out", str(out), "--quiet", "--no-plots"]) == 0
 
 
-def test_results_are_not_written_into_the_sequence_folder(small_sample, tmp_path, capsys):
-    """``--out`` naming the sequence's own folder (however spelt) is refused before anything is written."""
-    seq = small_sample(2)
-    before = sorted(p.name for p in seq.rglob("*"))
-    for out in (seq, seq / ".", seq / "rgb" / ".."):
-        assert main(["run", str(seq), "--out", str(out), "--quiet", "--no-plots"]) == 2
+@pytest.mark.parametrize("command", ["run", "analyze-noise", "calibrate"])
+def test_results_are_not_written_into_a_sequence_folder(small_sample, tmp_path, capsys, command):
+    """An ``--out`` that is a sequence's folder (its own, however spelt, or another one) is refused
+    before anything is written into it."""
+    seq, other = small_sample(2), small_sample(2)
+    before = {d: sorted(p.name for p in d.rglob("*")) for d in (seq, other)}
+    for out in (seq, seq / "rgb" / "..", other):
+        plots = [] if command == "calibrate" else ["--no-plots"]
+        assert main([command, str(seq), "--out", str(out), "--quiet", *plots]) == 2
         err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-        assert err == [f"covo: error: {out}: is the sequence's own folder; write the results into another one "
-                       "(--out)"], err
-    assert sorted(p.name for p in seq.rglob("*")) == before
+        assert err == [f"covo: error: {out}: is a sequence's folder (it holds a TUM sequence's rgb.txt); write the "
+                       "results into another one (--out)"], err
+    assert {d: sorted(p.name for p in d.rglob("*")) for d in (seq, other)} == before
+
+
+def test_package_warnings_print_as_one_line_and_others_as_python_prints_them(monkeypatch, capsys):
+    import warnings
+
+    from covo_gtsam.errors import CovoWarning
+
+    def command(args):
+        warnings.warn("ours", CovoWarning, stacklevel=1)
+        warnings.warn("a library's", UserWarning, stacklevel=1)
+        return 0
+
+    monkeypatch.setattr(cli, "cmd_run", command)
+    with pytest.warns(UserWarning) as record:  # what the printer leaves to the handler before it
+        assert main(["run", "x", "--out", "y"]) == 0
+    assert [str(w.message) for w in record] == ["a library's"]
+    assert capsys.readouterr().err == "covo: warning: ours\n"
 
 
 def test_run_leaves_the_folder_unlocked(small_sample, tmp_path, capsys):

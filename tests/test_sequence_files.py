@@ -11,7 +11,7 @@ import pytest
 
 from covo_gtsam.cli import main
 from covo_gtsam.datasets.tum import TumSequence
-from covo_gtsam.errors import DatasetError
+from covo_gtsam.errors import CovoWarning, DatasetError
 
 
 def one_error_line(capsys) -> str:
@@ -134,7 +134,7 @@ def test_groundtruth_dropouts_are_left_out_with_a_warning(small_sample, tmp_path
         lines[k] = " ".join(v[:2] + [value] + v[3:]) if value else " ".join(v[:4] + ["0", "0", "0", "0"])
     gt.write_text("\n".join(lines) + "\n")
     left_out = rf"groundtruth\.txt: 2 line\(s\) .* left out \(line {first + 4}, {first + 7}\)"
-    with pytest.warns(UserWarning, match=left_out):
+    with pytest.warns(CovoWarning, match=left_out):
         dropped = TumSequence(seq)
     assert len(dropped.gt_samples[0]) == len(plain.gt_samples[0]) - 2
     assert np.isin(dropped.gt_samples[0], plain.gt_samples[0]).all()
@@ -159,7 +159,7 @@ def test_groundtruth_samples_beyond_the_limit_are_left_out_before_interpolation(
     v = lines[k].split()
     lines[k] = " ".join([v[0], "2e9"] + v[2:])
     gt.write_text("\n".join(lines) + "\n")
-    with pytest.warns(UserWarning, match=rf"1 sample\(s\) more than 1e\+09 m from the origin left out \(stamp {v[0]}"):
+    with pytest.warns(CovoWarning, match=rf"1 sample\(s\) more than 1e\+09 m from the origin left out \(stamp {v[0]}"):
         far = TumSequence(seq)
     assert len(far.gt_samples[0]) == len(plain.gt_samples[0]) - 1
     assert np.abs(far.groundtruth[far.gt_valid][:, :3, 3]).max() < 10

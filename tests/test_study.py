@@ -225,3 +225,23 @@ def test_evaluate_checks_every_sequence_before_the_first_run(small_sample, tmp_p
         err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(err) == 1 and err[0].startswith(f"covo: error: {bad}"), err
         assert not out.exists() or not any(out.iterdir())  # no run was started
+
+
+def test_evaluate_refuses_a_results_folder_that_is_a_sequence_before_writing(small_sample, tmp_path, capsys):
+    """``OUT/<name>`` holding a sequence (the input itself when OUT is its parent, or another with
+    the same name) is refused before any run and before an earlier summary is replaced."""
+    import shutil
+
+    first, second = small_sample(3), small_sample(3)
+    out = tmp_path / "e"
+    shutil.copytree(second, out / second.name)  # another sequence where second's results would go
+    (out / "summary.csv").write_text("sequence\nearlier\n")
+    for args in ([str(first), str(second)], [str(first), str(second.parent / second.name)]):
+        assert main(["evaluate", *args, "--out", str(out), "--quiet", "--no-plots", "--workers", "1"]) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert err == [f"covo: error: {out / second.name}: is a sequence's folder (it holds a TUM sequence's "
+                       "rgb.txt); write the results into another one (--out)"], err
+        assert sorted(p.name for p in out.iterdir()) == sorted([second.name, "summary.csv"])
+        assert (out / "summary.csv").read_text() == "sequence\nearlier\n"
+    assert main(["evaluate", str(second), "--out", str(second.parent), "--quiet", "--no-plots", "--workers", "1"]) == 2
+    assert "is a sequence's folder" in capsys.readouterr().err

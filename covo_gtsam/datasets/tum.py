@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, DatasetError, InputError
+from ..errors import ConfigError, CovoWarning, DatasetError, InputError
 from ..geometry import make_pose, matrix_to_quat, quat_to_matrix
 from ..io import data_lines, file_problem, load_tum_trajectory
 from ..validation import check_real
@@ -273,7 +273,7 @@ class TumSequence:
             if far.any():  # before interpolating: a weight would bring such a sample below the limit
                 warnings.warn(f"{gt_file}: {int(far.sum())} sample(s) more than {MAX_GT_COORDINATE:g} m from the "
                               f"origin left out (stamp {', '.join(f'{t:.4f}' for t in stamps[far][:3])}"
-                              f"{', ...' if far.sum() > 3 else ''})", stacklevel=2)
+                              f"{', ...' if far.sum() > 3 else ''})", CovoWarning, stacklevel=2)
                 stamps, poses = stamps[~far], poses[~far]
             if stamps.size:
                 self.gt_samples = (stamps, poses)
