@@ -17,7 +17,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from .errors import ConfigError, CovoError
+from .errors import ConfigError, CovoError, CovoWarning
 
 def load_config_file(path: str):
     """Deprecated: :func:`covo_gtsam.config.load_config` (removed from the command line module in
@@ -195,6 +195,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                               timeout=args.connect_timeout, plots=not args.no_plots, topics=topics,
                               progress=not args.quiet)
     for r in rows:
+        if r["error"]:
+            print(f"{r['sequence']}: failed")
+            continue
         line = f"{r['sequence']}: {r['frames']} frames, {r['lost']} lost"
         if r["rpe1_m"] is not None:
             line += f", RPE1 {r['rpe1_m']:.4f} m"
@@ -202,6 +205,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             line += f", ANEES t {r['anees_t']:.2f} r {r['anees_r']:.2f}"
         print(line)
     print(f"results in {args.out} (summary.csv, summary.md)")
+    failed = [r for r in rows if r["error"]]
+    for r in failed:
+        print(f"covo: error: {r['error']}", file=sys.stderr)
+    if failed:
+        return 2
     nothing = [r["sequence"] for r in rows if r["frames"] and r["lost"] == r["frames"]]
     no_pose = [r["sequence"] for r in rows
                if _no_relative_pose(r["frames"], r["frames"] - r["lost"], r["relative_poses"])]
@@ -348,6 +356,9 @@ def main(argv: list[str] | None = None) -> int:
             gc.freeze()  # spares the interpreter's shutdown its collections over every object left
         return code
     except CovoError as exc:
+        print(f"covo: error: {exc}", file=sys.stderr)
+        return 2
+    except CovoWarning as exc:  # raised where Python's warnings options turn warnings into errors
         print(f"covo: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -31,7 +31,7 @@ import os
 import warnings
 from pathlib import Path
 
-from .errors import ConfigError, CovoWarning, DatasetError
+from .errors import ConfigError, CovoError, CovoWarning, DatasetError
 
 __all__ = ["COLUMNS", "evaluate_sequences", "run_one", "summary_row"]
 
@@ -50,7 +50,8 @@ def _get(m: dict, *keys):
 
 def summary_row(name: str, metrics: dict) -> dict:
     """The summary row of one run's ``metrics.json`` dict (None where a metric is missing): the
-    :data:`COLUMNS`, then ``relative_poses`` as :func:`run_one` gives it (not a column)."""
+    :data:`COLUMNS`, then ``relative_poses`` as :func:`run_one` gives it and ``error`` (the message
+    of a run that failed, else None; not columns)."""
     return {
         "sequence": name,
         "frames": metrics.get("frames"),
@@ -68,6 +69,7 @@ def summary_row(name: str, metrics: dict) -> dict:
         "worst_60_r": _get(metrics, "nees_breakdown", "windows", "anees_rotation", "highest"),
         "frames_per_s": metrics.get("frames_per_second"),
         "relative_poses": metrics.get("relative_poses"),
+        "error": metrics.get("error"),
     }
 
 
@@ -91,8 +93,8 @@ def run_one(path: str, out_dir: str, camera: str | None = None, config: dict | N
     from .config import OdometryConfig
     from .pipeline import run_sequence
 
-    with warnings.catch_warnings():  # what opening the sequence warns about was shown when it was checked
-        warnings.simplefilter("ignore", UserWarning)
+    with warnings.catch_warnings():  # what opening a TUM folder warns about was shown when it was checked
+        warnings.simplefilter("ignore", CovoWarning)
         seq, scale = _open_sequence(path, camera, topics or {})
     cfg = OdometryConfig.from_dict(config) if config else OdometryConfig()
     if scale is not None:
@@ -100,6 +102,15 @@ def run_one(path: str, out_dir: str, camera: str | None = None, config: dict | N
     result = run_sequence(seq, out_dir, config=cfg, max_frames=max_frames, plots=plots, progress=False,
                           bag_out=bag_out)
     return {**result.metrics, "relative_poses": sum(s.has_relative_pose for s in result.steps)}
+
+
+def _run_or_error(*args) -> dict:
+    """:func:`run_one`, or ``{"error": message}`` when the run fails with a :class:`CovoError` (a bag
+    that cannot be read): the study goes on with the other sequences and reports it."""
+    try:
+        return run_one(*args)
+    except CovoError as exc:
+        return {"error": str(exc)}
 
 
 def _names(paths: list[str]) -> list[str]:
@@ -204,8 +215,11 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
     """Run every sequence (see the module docstring) and write the summary; returns the rows
     (:func:`summary_row`).
 
+    A run that fails (a bag that cannot be read; TUM folders are opened before the first run) gets
+    a row with its ``error`` and empty metrics, and the others go on.
+
     Raises:
-        DatasetError: a path is neither a TUM folder nor a bag; the first failing run's error.
+        DatasetError: a path is neither a TUM folder nor a bag, or a TUM folder cannot be used.
         ConfigError: the scheduler cannot be reached.
     """
     from .parallel import CONNECT_TIMEOUT, map_tasks
@@ -233,7 +247,7 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
 
         bar = tqdm(total=len(args), desc="evaluate", unit="sequence")
     try:
-        metrics = map_tasks(run_one, args, workers=workers, scheduler=scheduler, timeout=timeout or CONNECT_TIMEOUT,
+        metrics = map_tasks(_run_or_error, args, workers=workers, scheduler=scheduler, timeout=timeout or CONNECT_TIMEOUT,
                             progress=(lambda k: bar.update(k - bar.n)) if bar is not None else None)
     finally:
         if bar is not None:

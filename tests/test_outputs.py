@@ -177,6 +177,10 @@ def test_package_warnings_print_as_one_line_and_others_as_python_prints_them(mon
         assert main(["run", "x", "--out", "y"]) == 0
     assert [str(w.message) for w in record] == ["a library's"]
     assert capsys.readouterr().err == "covo: warning: ours\n"
+    with warnings.catch_warnings():  # as under python -W error: the warning is one error line, exit code 2
+        warnings.simplefilter("error", CovoWarning)
+        assert main(["run", "x", "--out", "y"]) == 2
+    assert capsys.readouterr().err == "covo: error: ours\n"
 
 
 def test_run_leaves_the_folder_unlocked(small_sample, tmp_path, capsys):

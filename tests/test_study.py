@@ -245,3 +245,25 @@ def test_evaluate_refuses_a_results_folder_that_is_a_sequence_before_writing(sma
         assert (out / "summary.csv").read_text() == "sequence\nearlier\n"
     assert main(["evaluate", str(second), "--out", str(second.parent), "--quiet", "--no-plots", "--workers", "1"]) == 2
     assert "is a sequence's folder" in capsys.readouterr().err
+
+
+def test_evaluate_goes_on_past_a_sequence_whose_run_fails(small_sample, tmp_path, capsys):
+    """A bag is opened by its own run: one that cannot be read gets an empty row and one error line,
+    the other sequences' results and the summary are written, and the exit code is 2."""
+    import csv
+
+    import numpy as np
+
+    good, bad = small_sample(3), tmp_path / "broken.bag"
+    bad.write_bytes(np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    out = tmp_path / "e"
+    assert main(["evaluate", str(bad), str(good), "--out", str(out), "--quiet", "--no-plots", "--workers", "1"]) == 2
+    captured = capsys.readouterr()
+    err = [ln for ln in captured.err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith(f"covo: error: {bad}"), err
+    assert "broken: failed" in captured.out
+    with open(out / "summary.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["sequence"] for r in rows] == ["broken", good.name]
+    assert rows[0]["frames"] == "" and rows[1]["frames"] == "3"
+    assert (out / good.name / "metrics.json").is_file()
