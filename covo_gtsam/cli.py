@@ -373,7 +373,6 @@ def main(argv: list[str] | None = None) -> int:
 def _show_warning(show):
     """``warnings.showwarning`` that prints the package's own warnings (:class:`~covo_gtsam.errors.CovoWarning`)
     as one ``covo: warning:`` line on stderr and leaves others to ``show``."""
-    from .errors import CovoWarning
 
     def showwarning(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, CovoWarning):
