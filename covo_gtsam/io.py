@@ -168,15 +168,17 @@ def load_tum_trajectory(path: str | os.PathLike, skip_invalid: bool = False) -> 
     the file and the lines.
     """
     rows, line_nos = _load_rows(path, _TUM_COLS, "timestamp tx ty tz qx qy qz qw")
-    bad = _invalid_poses(rows, 1) | ~np.isfinite(rows[:, 0])
-    if skip_invalid and bad.any():
-        shown = ", ".join(str(n) for n in line_nos[bad][:5]) + (", ..." if bad.sum() > 5 else "")
-        warnings.warn(f"{path}: {int(bad.sum())} line(s) with a non-finite value or a zero quaternion left out "
-                      f"(line {shown})", CovoWarning, stacklevel=2)
-        rows, line_nos = rows[~bad], line_nos[~bad]
-    elif not np.isfinite(rows[:, 0]).all():
-        raise DatasetError(f"{path}:{line_nos[np.flatnonzero(~np.isfinite(rows[:, 0]))[0]]}: non-finite timestamp")
-    stamps, poses = rows[:, 0].copy(), _poses_from_rows(path, rows, line_nos, 1)
+    bad_stamps = ~np.isfinite(rows[:, 0])
+    if skip_invalid:
+        bad = _invalid_poses(rows, 1) | bad_stamps
+        if bad.any():
+            shown = ", ".join(str(n) for n in line_nos[bad][:5]) + (", ..." if bad.sum() > 5 else "")
+            warnings.warn(f"{path}: {int(bad.sum())} line(s) with a non-finite value or a zero quaternion left "
+                          f"out (line {shown})", CovoWarning, stacklevel=2)
+            rows, line_nos = rows[~bad], line_nos[~bad]
+    elif bad_stamps.any():
+        raise DatasetError(f"{path}:{line_nos[np.flatnonzero(bad_stamps)[0]]}: non-finite timestamp")
+    stamps, poses = rows[:, 0].copy(), _poses_from_rows(path, rows, line_nos, 1)  # checks the poses left
     keep = _first_of_each_stamp(path, stamps, poses, line_nos)
     return stamps[keep], poses[keep]
 

@@ -247,7 +247,8 @@ def evaluate_sequences(paths: list[str], out_dir: str | os.PathLike, camera: str
 
         bar = tqdm(total=len(args), desc="evaluate", unit="sequence")
     try:
-        metrics = map_tasks(_run_or_error, args, workers=workers, scheduler=scheduler, timeout=timeout or CONNECT_TIMEOUT,
+        metrics = map_tasks(_run_or_error, args, workers=workers, scheduler=scheduler,
+                            timeout=timeout or CONNECT_TIMEOUT,
                             progress=(lambda k: bar.update(k - bar.n)) if bar is not None else None)
     finally:
         if bar is not None:
