@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Sequence
 
+import gtsam
 import numpy as np
 
 from .chi2 import CHI2_3_975
@@ -20,10 +21,10 @@ from .covariance import compose_chains
 from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
 from .geometry import invert_pose
-from .metrics import ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
+from .metrics import anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
-from .reference_noise import pair_jitter_covariances, reference_jitter
+from .reference_noise import axes_rotation, pair_jitter_covariances, reference_jitter
 
 #: Longest median interval (s) between ground-truth samples whose jitter :func:`reference_statistics`
 #: measures (a 100 Hz motion-capture reference: 0.01 s).
@@ -157,7 +158,7 @@ class RunEvaluation:
     in (``has_ground_truth`` False; :meth:`to_dict` writes the other statistics null). With it, a
     statistic that cannot be computed is None and ``not_computed[name]`` says why
     (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``, ``"nees_breakdown"``,
-    ``"reference_jitter"``); its array, if it has one, is then empty, or holds the values that made
+    ``"reference_jitter"``, ``"reference_axes"``); its array, if it has one, is then empty, or holds the values that made
     it fail (not finite).
     """
 
@@ -189,6 +190,8 @@ class RunEvaluation:
     breakdown: dict | None = None
     #: the ground truth's own noise (:func:`reference_statistics`)
     reference: dict | None = None
+    #: the fixed rotation between the reference's axes and the estimates' (:func:`reference_axes`)
+    axes: dict | None = None
     #: whether the NEES values take the ground truth's own jitter into account (its samples were at hand)
     nees_with_reference_jitter: bool = False
     #: :func:`consistency_statistics` of the pairs under the reported covariances alone, without the
@@ -228,7 +231,7 @@ class RunEvaluation:
     def to_dict(self) -> dict:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then ``not_computed``,
         ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`, ``chains``,
-        ``nees_breakdown``, ``reference_jitter``, ``nees_with_reference_jitter`` and
+        ``nees_breakdown``, ``reference_jitter``, ``reference_axes``, ``nees_with_reference_jitter`` and
         ``without_reference_jitter`` (without ground truth null, each with that reason under
         ``not_computed``), then ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
@@ -248,8 +251,8 @@ class RunEvaluation:
         # without ground truth the same keys, null, each with the reason
         rpe = self.rpe if self.has_ground_truth else dict.fromkeys(RPE_DELTAS)
         out["not_computed"] = self.not_computed if self.has_ground_truth else dict.fromkeys(
-            (*(f"rpe_{delta}" for delta in rpe), "ate", "anees", "chains", "nees_breakdown", "reference_jitter"),
-            "the sequence has no ground truth")
+            (*(f"rpe_{delta}" for delta in rpe), "ate", "anees", "chains", "nees_breakdown", "reference_jitter",
+             "reference_axes"), "the sequence has no ground truth")
         out["segments"] = self.segments
         out.update({f"rpe_{delta}": stats for delta, stats in rpe.items()})
         out["ate"] = self.ate
@@ -257,6 +260,7 @@ class RunEvaluation:
         out["chains"] = self.chains
         out["nees_breakdown"] = self.breakdown
         out["reference_jitter"] = self.reference
+        out["reference_axes"] = self.axes
         out["nees_with_reference_jitter"] = self.nees_with_reference_jitter
         out["without_reference_jitter"] = self.without_reference_jitter
         if self.self_calibration is not None:
@@ -348,7 +352,30 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
         return nees_breakdown(T_true, ref_stamps, cur_stamps, ev.nees_rotation, ev.nees_translation)
 
     ev.breakdown = _computed(ev.not_computed, "nees_breakdown", breakdown, no_pairs)
+    ev.axes = _computed(ev.not_computed, "reference_axes",
+                        partial(reference_axes, steps, gt, T_est, T_true, covs, jitter), no_pairs)
     return ev
+
+
+def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T_est: np.ndarray,
+                   T_true: np.ndarray, covs: np.ndarray, jitter=None) -> dict:
+    """``metrics.json``'s ``reference_axes``: the fixed rotation between the reference's axes and
+    the estimates' (:func:`~covo_gtsam.reference_noise.axes_rotation` of the pairs ``T_est``,
+    ``T_true`` with ``covs``, the reference's jitter in them), about the camera's x / y / z axes in
+    degrees with its standard errors, and the rotation ANEES of the chains (:func:`chain_nees`)
+    against the reference with its axes turned back by it (fitted on the same pairs; None without
+    a chain). A check of the reference (a hand-eye rotation, a principal point), not a correction:
+    the reported covariances do not carry it."""
+    fit = axes_rotation(T_est, T_true, covs)
+    D = np.eye(4)
+    D[:3, :3] = gtsam.Rot3.Expmap(fit["rotation_rad"]).matrix()
+    try:
+        chains = anees(chain_nees(steps, {t: G @ D for t, G in gt.items()}, jitter=jitter)[0])
+    except InputError:
+        chains = None
+    return {"rotation_deg": np.rad2deg(fit["rotation_rad"]).tolist(),
+            "standard_error_deg": np.rad2deg(fit["standard_error_rad"]).tolist(),
+            "pairs": fit["pairs"], "chains_anees_rotation": chains}
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -12,6 +12,10 @@ residuals squared over ``1 + v``, divided by the median of chi2(1), estimates ``
 Rotation residuals are ``Log(R_i^T R_pred)`` about the sample's own axes (for TUM ground truth the
 colour camera's: x right, y down, z forward), radians; translation residuals are rotated into the
 same axes, metres. docs/derivation.md ("The reference's own noise") has the measurements.
+
+:func:`axes_rotation` measures the other error a reference brings: a fixed rotation between its
+axes and the camera's (a hand-eye calibration's, or a principal point's), which turns every pose
+change it reports. It needs the odometry's estimates, and is a check, not a correction.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ import numpy as np
 
 from .errors import InputError
 from .geometry import invert_pose
-from .metrics import se3_log
+from .metrics import relative_pose_tangent_errors, se3_log
 
 #: median of chi2 with one degree of freedom
 CHI2_1_MEDIAN = 0.454936423119572
@@ -97,3 +101,32 @@ def pair_jitter_covariances(stamps: np.ndarray, rotation_sd: np.ndarray, ref_sta
     out = np.zeros((share.shape[0], 6, 6))
     out[:, :3, :3] = np.diag(np.asarray(rotation_sd, dtype=float) ** 2) * share[:, None, None]
     return out
+
+
+def axes_rotation(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> dict:
+    """The fixed rotation ``d`` between the estimates' axes and the reference's that best explains
+    the pairs' rotation errors: ``{"rotation_rad": d (3,), "standard_error_rad": (3,), "pairs": n}``.
+
+    A reference whose axes are those of the camera turned by ``D = Exp(d)`` reports each relative
+    pose as ``D T D^-1``, so the rotation error of a pair (``Log(R_est^T R_true)``, rad, about the
+    pair's reference frame's axes, right perturbation) is ``(R_true^T - I) d`` to first order in ``d``
+    and the pair's own error, about ``d x w`` for a turn ``w``. ``d`` is the generalized
+    least-squares fit over the pairs ``T_est``, ``T_true`` (N, 4, 4) with the rotation blocks of
+    ``covs`` (N, 6, 6; tangent ``[omega, v]``), the pairs taken as independent; the standard errors
+    follow from that. A component is observed only by turns about the other two axes: pairs that
+    all turn about x leave ``d_x`` with a large standard error. The error a chain of ``k`` pairs
+    gains from ``d`` grows with its net turn, while its covariance composed from independent pairs
+    grows with ``sqrt(k)``. :class:`InputError` with fewer than two pairs or turns about one axis only."""
+    T_est, T_true = np.asarray(T_est, dtype=float), np.asarray(T_true, dtype=float)
+    covs = np.asarray(covs, dtype=float)
+    if covs.shape != (T_est.shape[0], 6, 6) or T_est.shape[0] < 2:
+        raise InputError(f"need two or more pairs with covariances (N, 6, 6), got {covs.shape} for {T_est.shape[0]}")
+    e = relative_pose_tangent_errors(T_est, T_true)[:, :3]
+    J = T_true[:, :3, :3].transpose(0, 2, 1) - np.eye(3)
+    W = np.linalg.inv(covs[:, :3, :3])
+    H = np.einsum("nki,nkl,nlj->ij", J, W, J)
+    g = np.einsum("nki,nkl,nl->i", J, W, e)
+    if np.linalg.cond(H) > 1e12:
+        raise InputError("the pairs turn about one axis only: the rotation about it is not observed")
+    H_inv = np.linalg.inv(H)
+    return {"rotation_rad": H_inv @ g, "standard_error_rad": np.sqrt(np.diag(H_inv)), "pairs": int(T_est.shape[0])}

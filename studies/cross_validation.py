@@ -15,10 +15,12 @@ NEES against the ground truth adds its jitter, as `metrics.json`'s does (at a ch
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 from pathlib import Path
 
+import gtsam
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,6 +32,7 @@ from covo_gtsam.calibration import (  # noqa: E402
     PRIOR_TERMS,
     fit_sensor_terms,
 )
+from covo_gtsam.camera import Camera  # noqa: E402
 from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.covariance import compose_chains, compose_covariance  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
@@ -43,6 +46,7 @@ from covo_gtsam.evaluation import (  # noqa: E402
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors, se3_log  # noqa: E402
 from covo_gtsam.nees_breakdown import ACCELERATION_EDGES, by_bins, true_motion  # noqa: E402
 from covo_gtsam.pipeline import calibration_pairs, prior_covariances, run_sequence, stacked_bases  # noqa: E402
+from covo_gtsam.reference_noise import axes_rotation  # noqa: E402
 
 RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
 #: the per-point model alone (sensor settings): no sensor terms
@@ -677,9 +681,6 @@ def drift_table(data: Path) -> list[str]:
     10 (the default), 20 and 30 pairs, per half (pair and 30-pair chain ANEES, the chains'
     translation RMS) and over all frames (translation RMS of chains of 10-200 pairs, ATE)."""
     seq = TumSequence(data / "tum" / RPY)
-    lookup = ground_truth_lookup(seq)
-    jitter = reference_covariances(seq.gt_samples)
-    index = {t: i for i, t in enumerate(seq.timestamps)}
     lines = ["## The depth's drift", "",
              "Each pair's translation moved by the mean, over the last pairs, of the depth-free estimates' "
              "disagreement with the 3D-3D estimate along the pair's depth-scale response "
@@ -695,22 +696,101 @@ def drift_table(data: Path) -> list[str]:
         cfg = OdometryConfig().replace(sensor={"depth_drift_pairs": m})
         with tempfile.TemporaryDirectory() as tmp:
             run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False)
-        steps = pairs_with_truth(run.steps, lookup)
-        T_est, T_true, covs = relative_ground_truth(steps, lookup)
-        t_ref, t_cur = np.array([s.ref_timestamp for s in steps]), np.array([s.timestamp for s in steps])
-        ref = jitter(t_ref, t_cur)
-        p = {"T_est": T_est, "T_true": T_true, "ref": ref, "jitter": jitter, "t_ref": t_ref, "t_cur": t_cur,
-             "end": np.array([index[t] for t in t_cur])}
+        p, covs = reported_pairs(seq, run.steps)
+        T_est, T_true = p["T_est"], p["T_true"]
         cells = []
         for lo, hi in ((1, 119), (120, 239)):
             half = (p["end"] >= lo) & (p["end"] <= hi)
-            h, h_covs = subset(p, half), covs[half] + ref[half]
+            h, h_covs = subset(p, half), covs[half]
             nt, nr = anees_cells(relative_pose_tangent_errors(h["T_est"], h["T_true"]), h_covs)
             ct, cr = chain_anees(h, h_covs)
             cells.append(f"{nt.mean():.2f} / {nr.mean():.2f}, {ct:.2f} / {cr:.2f}, "
                          f"{1e3 * chain_translation_rms(h['T_est'], h['T_true'], CHAIN):.1f}")
         lengths = " / ".join(f"{1e3 * chain_translation_rms(T_est, T_true, w):.1f}" for w in DRIFT_LENGTHS)
         lines.append(f"| {m} | {cells[0]} | {cells[1]} | {lengths} | {run.metrics['ate']['rmse']:.4f} |")
+    return lines + [""]
+
+
+def reported_pairs(seq: TumSequence, steps: list) -> tuple[dict, np.ndarray]:
+    """The tracked pairs of ``steps`` with ground truth as :func:`chain_anees` takes them (poses,
+    the reference's jitter per pair and its function of the stamps, end frames) and their reported
+    covariances with that jitter added, as ``metrics.json``'s NEES adds it."""
+    lookup = ground_truth_lookup(seq)
+    jitter = reference_covariances(seq.gt_samples)
+    index = {t: i for i, t in enumerate(seq.timestamps)}
+    steps = pairs_with_truth(steps, lookup)
+    T_est, T_true, covs = relative_ground_truth(steps, lookup)
+    t_ref, t_cur = np.array([s.ref_timestamp for s in steps]), np.array([s.timestamp for s in steps])
+    ref = jitter(t_ref, t_cur)
+    return ({"T_est": T_est, "T_true": T_true, "ref": ref, "jitter": jitter, "t_ref": t_ref, "t_cur": t_cur,
+             "end": np.array([index[t] for t in t_cur])}, covs + ref)
+
+
+#: the principal point's row of the fr1 colour camera (px): its calibration's, and 10 px either side
+PRINCIPAL_ROWS = (245.3, 255.3, 265.3)
+
+
+def axes_table(data: Path) -> list[str]:
+    """The fixed rotation between the reference's axes and the camera's
+    (:func:`covo_gtsam.reference_noise.axes_rotation`) fitted per half of fr1_rpy and on all its
+    pairs; the 30-pair chains' rotation ANEES per half against the reference turned back by the
+    fit on all pairs; then the same fit with the camera's
+    principal point moved up and down by 10 px."""
+    seq = TumSequence(data / "tum" / RPY)
+    halves = {"frames 1-119": (1, 119), "frames 120-239": (120, 239), "all": (1, 239)}
+
+    def fits(p: dict, covs: np.ndarray) -> dict:
+        return {label: axes_rotation(p["T_est"][m], p["T_true"][m], covs[m])
+                for label, (lo, hi) in halves.items() for m in [(p["end"] >= lo) & (p["end"] <= hi)]}
+
+    def turned_back(p: dict, d: np.ndarray) -> dict:
+        D = np.eye(4)
+        D[:3, :3] = gtsam.Rot3.Expmap(d).matrix()
+        return {**p, "T_true": np.linalg.inv(D) @ p["T_true"] @ D}
+
+    def chains_r(p: dict, covs: np.ndarray, lo: int, hi: int) -> str:
+        m = (p["end"] >= lo) & (p["end"] <= hi)
+        return f"{chain_anees(subset(p, m), covs[m])[1]:.2f}"
+
+    def angles(f: dict) -> str:
+        return " / ".join(f"{a:+.2f} ± {s:.2f}" for a, s in
+                          zip(np.rad2deg(f["rotation_rad"]), np.rad2deg(f["standard_error_rad"])))
+
+    p, covs = reported_pairs(seq, every_nth(seq, OdometryConfig(), 1))
+    fit = fits(p, covs)
+    lines = ["## A fixed rotation between the reference's axes and the camera's", "",
+             "A reference whose axes are the camera's turned by a fixed rotation `d` (a hand-eye calibration's "
+             "error, or the camera's principal point) reports each pair as `D T D^-1`, a rotation error of "
+             "about `d x w` for a turn `w`: small per pair, but it grows with a chain's net turn, which "
+             "independent pairs' covariances do not. `d` fitted by generalized least squares on the "
+             "consecutive pairs of fr1_rpy (default model, reported covariances with the reference's "
+             "jitter; `covo_gtsam.reference_noise.axes_rotation`, `reference_axes` in `metrics.json`), about "
+             "the camera's x / y / z axes with its standard errors (pairs taken as independent); a component "
+             "is observed only by turns about the other two axes, so each half of fr1_rpy, turning mostly about "
+             "one axis, leaves that axis's component to the other half (and a fit on one half cannot be carried to "
+             "the other). Then the rotation ANEES of the chains of "
+             f"{CHAIN} pairs of each half, against the reference as it is and turned back by the fit on all pairs "
+             "(in sample).", "",
+             "| pairs | d (deg) x / y / z | RMS true turn per pair x / y / z (deg) | chains of 30, rotation ANEES: "
+             "as it is / turned back |", "|---|---|---|---|"]
+    turns = np.rad2deg(se3_log(p["T_true"])[:, :3])
+    for label, (lo, hi) in halves.items():
+        m = (p["end"] >= lo) & (p["end"] <= hi)
+        rms = " / ".join(f"{v:.2f}" for v in np.sqrt(np.mean(turns[m] ** 2, axis=0)))
+        cells = [chains_r(p, covs, lo, hi), chains_r(turned_back(p, fit["all"]["rotation_rad"]), covs, lo, hi)]
+        lines.append(f"| {label} ({fit[label]['pairs']}) | {angles(fit[label])} | {rms} | {' / '.join(cells)} |")
+    lines += ["", "The same with the fr1 camera's principal point (row `cy`, px; 255.3 is its calibration's) moved "
+              "by 10 px either way: the fit on all pairs, RPE30 of the run, and the chains' rotation ANEES per "
+              "half as the reference is.", "",
+              "| cy (px) | d (deg) x / y / z | RPE30 (m) | chains of 30, rotation ANEES: frames 1-119 / 120-239 |",
+              "|---|---|---|---|"]
+    for cy in PRINCIPAL_ROWS:
+        cam = dataclasses.replace(Camera.preset("fr1"), cy=cy)
+        with tempfile.TemporaryDirectory() as tmp:
+            run = run_sequence(seq, tmp, camera=cam, plots=False, progress=False)
+        q, q_covs = reported_pairs(seq, run.steps)
+        lines.append(f"| {cy:.1f} | {angles(fits(q, q_covs)['all'])} | {run.metrics['rpe_30']['trans_rmse']:.4f} | "
+                     f"{chains_r(q, q_covs, 1, 119)} / {chains_r(q, q_covs, 120, 239)} |")
     return lines + [""]
 
 
@@ -866,7 +946,7 @@ def main() -> None:
               + whole_sequence_table(args.data)
               + speed_term_table(args.data)
               + closure_table(args.data) + persistence_table(args.data) + drift_table(args.data)
-              + reference_table(args.data) + independent_table(args.data))
+              + reference_table(args.data) + axes_table(args.data) + independent_table(args.data))
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -13,7 +13,8 @@ from conftest import SAMPLE_DIR
 BASE_KEYS = ["sequence", "frames", "tracked_frames", "lost_frames", "lost", "restarts", "unassociated", "elapsed_s",
              "frames_per_second", "mean_pairs", "flagged_pairs", "flagged"]
 GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS, "chains",
-           "nees_breakdown", "reference_jitter", "nees_with_reference_jitter", "without_reference_jitter"]
+           "nees_breakdown", "reference_jitter", "reference_axes", "nees_with_reference_jitter",
+           "without_reference_jitter"]
 
 
 @pytest.fixture(scope="module")
@@ -120,6 +121,35 @@ def test_the_nees_adds_the_references_jitter_to_each_covariance(sample_run):
         true = np.linalg.inv(ev.ground_truth[first]) @ ev.ground_truth[last]
         xi = gtsam.Pose3.Logmap(gtsam.Pose3(est[m]).between(gtsam.Pose3(true)))[:3]
         assert ev.chain_nees_rotation[m] == pytest.approx(xi @ np.linalg.solve(Cr, xi), rel=1e-9)
+
+
+def test_a_reference_turned_against_the_camera_shows_in_reference_axes(sample_run):
+    """A ground truth whose axes are turned by ``D`` (each pose ``G D^-1``, so each pair reads
+    ``D T D^-1``) is fitted that rotation, and against it turned back by the fit the chains' NEES
+    are what they are against the unturned one. The ground truth here is the run's own trajectory,
+    so only the turn is fitted (the fit's regressor is the reference's turn: with errors about as
+    large as the turns, as on these slow frames, it is not exact even to first order)."""
+    import copy
+
+    import gtsam
+
+    from covo_gtsam.datasets.tum import TumSequence
+
+    steps = sample_run.steps
+    seq = TumSequence(SAMPLE_DIR).frames(0, len(steps))
+    assert [s.timestamp for s in steps] == list(seq.timestamps) and all(s.has_pose for s in steps)
+    seq.groundtruth = np.array([s.pose.matrix() for s in steps])
+    seq.gt_valid, seq.gt_samples = np.ones(len(steps), bool), None
+    d = np.deg2rad([3.0, -2.0, 1.0])
+    turned = copy.copy(seq)
+    turned.groundtruth = seq.groundtruth @ np.linalg.inv(gtsam.Pose3(gtsam.Rot3.Expmap(d), np.zeros(3)).matrix())
+    before, after = evaluate_run(steps, seq, 1.0), evaluate_run(steps, turned, 1.0)
+    axes, axes_turned = before.to_dict()["reference_axes"], after.to_dict()["reference_axes"]
+    assert axes["pairs"] == axes_turned["pairs"] == 34
+    np.testing.assert_allclose(axes["rotation_deg"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(axes_turned["rotation_deg"], np.rad2deg(d), rtol=0.05)
+    assert before.chains["anees_rotation"] < 1e-12 and after.chains["anees_rotation"] > 1e-3
+    assert axes_turned["chains_anees_rotation"] < 1e-3 * after.chains["anees_rotation"]
 
 
 def test_without_the_references_samples_the_jitter_says_why(sample_run):
