@@ -68,9 +68,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         line += f", RPE30 {m['rpe_30']['trans_rmse']:.4f} m"
     if m.get("anees_translation") is not None and m.get("anees_rotation") is not None:
         line += f", ANEES t {m['anees_translation']:.2f} r {m['anees_rotation']:.2f}"
+    notes = []
+    if m.get("anees_band_95"):  # how far from 3 so many pairs stray by chance
+        notes.append(f"95 % band for {m['nees_pairs']} pairs {m['anees_band_95'][0]:.2f}-{m['anees_band_95'][1]:.2f}")
     if m.get("chains"):
         c = m["chains"]
-        line += f" (chains of {c['pairs_per_chain']}: t {c['anees_translation']:.2f} r {c['anees_rotation']:.2f})"
+        notes.append(f"chains of {c['pairs_per_chain']}: t {c['anees_translation']:.2f} r {c['anees_rotation']:.2f}")
+    line += f" ({'; '.join(notes)})" if notes else ""
     print(line)
     if getattr(seq, "groundtruth", None) is None:
         gt = Path(getattr(seq, "path", "")) / "groundtruth.txt"

@@ -16,7 +16,7 @@ from typing import Sequence
 import gtsam
 import numpy as np
 
-from .chi2 import CHI2_3_975
+from .chi2 import CHI2_3_975, anees_band
 from .covariance import compose_chains
 from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
@@ -40,10 +40,13 @@ def consistency_metrics(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray)
     return consistency_statistics(*relative_pose_nees(T_est, T_true, covs))
 
 
-def consistency_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray) -> dict:
-    """The :func:`consistency_metrics` dictionary of rotational and translational NEES values (N,)."""
+def consistency_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray, band: bool = True) -> dict:
+    """The :func:`consistency_metrics` dictionary of rotational and translational NEES values (N,);
+    with ``band`` also ``anees_band_95``, the two-sided 95 % band of the ANEES of N independent
+    pairs of a consistent covariance (:func:`~covo_gtsam.chi2.anees_band`: how far from 3 an ANEES
+    of that many pairs strays by chance; not for overlapping chains, whose NEES are not independent)."""
     upper = CHI2_3_975
-    return {
+    out = {
         "anees_translation": float(np.mean(nees_tr)),
         "anees_rotation": float(np.mean(nees_rot)),
         "share_nees_translation_above_chi2_975": float(np.mean(nees_tr > upper)),
@@ -51,6 +54,9 @@ def consistency_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray) -> dict:
         "chi2_3_975": float(upper),
         "nees_pairs": int(len(nees_tr)),
     }
+    if band:
+        out["anees_band_95"] = list(anees_band(len(nees_tr)))
+    return out
 
 
 def pairs_with_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]) -> list[OdometryStep]:
@@ -70,7 +76,7 @@ def relative_ground_truth(steps: Sequence[OdometryStep], stamp_to_gt: dict[float
 def chain_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray, length: int = CHAIN_PAIRS) -> dict:
     """``metrics.json``'s ``chains``: :func:`consistency_statistics` of the chains' NEES values
     (:func:`chain_nees`; ``nees_pairs``: the chains) and ``pairs_per_chain`` (``length``)."""
-    return {"pairs_per_chain": int(length), **consistency_statistics(nees_rot, nees_tr)}
+    return {"pairs_per_chain": int(length), **consistency_statistics(nees_rot, nees_tr, band=False)}
 
 
 def chain_nees(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
@@ -415,7 +421,7 @@ def reference_covariances(samples: tuple[np.ndarray, np.ndarray], rotation_sd: n
 
 #: Keys of :func:`consistency_metrics` (None when it cannot be computed).
 CONSISTENCY_KEYS = ("anees_translation", "anees_rotation", "share_nees_translation_above_chi2_975",
-                    "share_nees_rotation_above_chi2_975", "chi2_3_975", "nees_pairs")
+                    "share_nees_rotation_above_chi2_975", "chi2_3_975", "nees_pairs", "anees_band_95")
 
 
 def _computed(reasons: dict, name: str, compute, reason: str | None):

@@ -48,6 +48,11 @@ def test_statistics_summarise_the_arrays_kept(sample_run):
     assert ev.consistency["nees_pairs"] == ev.nees_translation.size == ev.nees_rotation.size
     assert ev.consistency["anees_translation"] == np.mean(ev.nees_translation)
     assert ev.consistency["anees_rotation"] == np.mean(ev.nees_rotation)
+    # the band of 34 independent pairs' ANEES (scipy as the oracle); none for the overlapping chains
+    from scipy.stats import chi2
+
+    np.testing.assert_allclose(ev.consistency["anees_band_95"], chi2.ppf([0.025, 0.975], 3 * 34) / 34, rtol=1e-6)
+    assert "anees_band_95" not in ev.chains
     # 34 consecutive pairs, none lost: 5 chains of 30
     assert ev.chains["nees_pairs"] == 5 and ev.chains["pairs_per_chain"] == 30
     assert ev.to_dict()["chains"] == ev.chains and ev.chains["anees_translation"] > 0

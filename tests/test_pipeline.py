@@ -59,7 +59,9 @@ def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     from covo_gtsam.covariance import compose_covariance
 
     c = m["chains"]
-    assert f"(chains of 30: t {c['anees_translation']:.2f} r {c['anees_rotation']:.2f})" in printed
+    assert f"; chains of 30: t {c['anees_translation']:.2f} r {c['anees_rotation']:.2f})" in printed
+    lo, hi = m["anees_band_95"]
+    assert f"(95 % band for {m['nees_pairs']} pairs {lo:.2f}-{hi:.2f}; " in printed
     gt_at = dict(zip(np.round(seq.timestamps, 6), seq.groundtruth))
     nees_t = []
     for start in range(len(rel) - 29):
