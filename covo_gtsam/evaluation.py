@@ -7,13 +7,13 @@ figures (:func:`covo_gtsam.plots.plot_run`) draw, so the two cannot disagree.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Sequence
 
-import gtsam
 import numpy as np
 
 from .chi2 import CHI2_3_975, anees_band
@@ -24,7 +24,7 @@ from .geometry import invert_pose
 from .metrics import anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
-from .reference_noise import axes_rotation, pair_jitter_covariances, reference_jitter
+from .reference_noise import axes_rotation, axes_transform, pair_jitter_covariances, reference_jitter
 
 #: Longest median interval (s) between ground-truth samples whose jitter :func:`reference_statistics`
 #: measures (a 100 Hz motion-capture reference: 0.01 s).
@@ -164,8 +164,8 @@ class RunEvaluation:
     in (``has_ground_truth`` False; :meth:`to_dict` writes the other statistics null). With it, a
     statistic that cannot be computed is None and ``not_computed[name]`` says why
     (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``, ``"nees_breakdown"``,
-    ``"reference_jitter"``, ``"reference_axes"``); its array, if it has one, is then empty, or holds the values that made
-    it fail (not finite).
+    ``"reference_jitter"``, ``"reference_axes"``); its array, if it has one, is then empty, or
+    holds the values that made it fail (not finite).
     """
 
     sequence: str
@@ -365,23 +365,28 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
 def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T_est: np.ndarray,
                    T_true: np.ndarray, covs: np.ndarray, jitter=None) -> dict:
-    """``metrics.json``'s ``reference_axes``: the fixed rotation between the reference's axes and
-    the estimates' (:func:`~covo_gtsam.reference_noise.axes_rotation` of the pairs ``T_est``,
-    ``T_true`` with ``covs``, the reference's jitter in them), about the camera's x / y / z axes in
-    degrees with its standard errors, and the rotation ANEES of the chains (:func:`chain_nees`)
-    against the reference with its axes turned back by it (fitted on the same pairs; None without
-    a chain). A check of the reference (a hand-eye rotation, a principal point), not a correction:
-    the reported covariances do not carry it."""
+    """``metrics.json``'s ``reference_axes``: the fixed rotation by which the reference's axes are
+    turned against the estimates' (:func:`~covo_gtsam.reference_noise.axes_rotation` of the pairs
+    ``T_est``, ``T_true`` with ``covs``, the reference's jitter in them), a rotation vector about the
+    camera's x / y / z axes in degrees with its standard errors, and the rotation ANEES of the
+    chains (:func:`chain_nees`) against the reference turned back by it (fitted on the same pairs;
+    None without a chain, or where a standard error exceeds :data:`AXES_OBSERVED_DEG`: the
+    rotation is not observed about every axis). A check of the reference (a hand-eye rotation, a
+    principal point), not a correction: the reported covariances do not carry it."""
     fit = axes_rotation(T_est, T_true, covs)
-    D = np.eye(4)
-    D[:3, :3] = gtsam.Rot3.Expmap(fit["rotation_rad"]).matrix()
-    try:
-        chains = anees(chain_nees(steps, {t: G @ D for t, G in gt.items()}, jitter=jitter)[0])
-    except InputError:
-        chains = None
-    return {"rotation_deg": np.rad2deg(fit["rotation_rad"]).tolist(),
+    chains = None
+    if np.all(np.rad2deg(fit["standard_error_rad"]) <= AXES_OBSERVED_DEG):
+        D = axes_transform(fit["rotation_rad"])
+        with contextlib.suppress(InputError):
+            chains = anees(chain_nees(steps, {t: G @ D for t, G in gt.items()}, jitter=jitter)[0])
+    return {"rotation_vector_deg": np.rad2deg(fit["rotation_rad"]).tolist(),
             "standard_error_deg": np.rad2deg(fit["standard_error_rad"]).tolist(),
             "pairs": fit["pairs"], "chains_anees_rotation": chains}
+
+
+#: largest standard error (deg) of :func:`reference_axes`'s rotation with which the chains are
+#: turned back by it
+AXES_OBSERVED_DEG = 2.0
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -20,6 +20,7 @@ change it reports. It needs the odometry's estimates, and is a check, not a corr
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 
 from .errors import InputError
@@ -104,19 +105,22 @@ def pair_jitter_covariances(stamps: np.ndarray, rotation_sd: np.ndarray, ref_sta
 
 
 def axes_rotation(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> dict:
-    """The fixed rotation ``d`` between the estimates' axes and the reference's that best explains
-    the pairs' rotation errors: ``{"rotation_rad": d (3,), "standard_error_rad": (3,), "pairs": n}``.
+    """The fixed rotation ``d`` by which a reference's axes are turned against the estimates' that
+    best explains the pairs' rotation errors: ``{"rotation_rad": d (3,), "standard_error_rad": (3,),
+    "pairs": n}``, ``d`` a rotation vector (rad) about the camera's axes.
 
-    A reference whose axes are those of the camera turned by ``D = Exp(d)`` reports each relative
-    pose as ``D T D^-1``, so the rotation error of a pair (``Log(R_est^T R_true)``, rad, about the
-    pair's reference frame's axes, right perturbation) is ``(R_true^T - I) d`` to first order in ``d``
-    and the pair's own error, about ``d x w`` for a turn ``w``. ``d`` is the generalized
-    least-squares fit over the pairs ``T_est``, ``T_true`` (N, 4, 4) with the rotation blocks of
-    ``covs`` (N, 6, 6; tangent ``[omega, v]``), the pairs taken as independent; the standard errors
-    follow from that. A component is observed only by turns about the other two axes: pairs that
-    all turn about x leave ``d_x`` with a large standard error. The error a chain of ``k`` pairs
-    gains from ``d`` grows with its net turn, while its covariance composed from independent pairs
-    grows with ``sqrt(k)``. :class:`InputError` with fewer than two pairs or turns about one axis only."""
+    A reference whose poses are the camera's ``G`` times ``D^-1``, ``D = Exp(d)`` (its axes turned
+    by ``D``, as an error of a hand-eye calibration turns them), reports each relative pose as
+    ``D T D^-1``, so the rotation error of a pair (``Log(R_est^T R_true)``, rad, about the pair's
+    reference frame's axes, right perturbation) is ``(R_true^T - I) d`` to first order in ``d`` and
+    the pair's own error, about ``d x w`` for a turn ``w``. ``d`` is the generalized least-squares
+    fit over the pairs ``T_est``, ``T_true`` (N, 4, 4) with the rotation blocks of ``covs`` (N, 6,
+    6; tangent ``[omega, v]``); its standard errors hold if the pairs are independent and ``covs``
+    right (they are not scaled by the fit's residuals). A component is observed only by turns
+    about the other two axes: pairs that all turn about x leave ``d_x`` with a large standard
+    error. The error a chain of ``k`` pairs gains from ``d`` grows with its net turn, while its
+    covariance composed from independent pairs grows with ``sqrt(k)``. :class:`InputError` with
+    fewer than two pairs or turns about one axis only."""
     T_est, T_true = np.asarray(T_est, dtype=float), np.asarray(T_true, dtype=float)
     covs = np.asarray(covs, dtype=float)
     if covs.shape != (T_est.shape[0], 6, 6) or T_est.shape[0] < 2:
@@ -126,7 +130,16 @@ def axes_rotation(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> di
     W = np.linalg.inv(covs[:, :3, :3])
     H = np.einsum("nki,nkl,nlj->ij", J, W, J)
     g = np.einsum("nki,nkl,nl->i", J, W, e)
-    if np.linalg.cond(H) > 1e12:
+    if np.linalg.cond(H) > 1e8:
         raise InputError("the pairs turn about one axis only: the rotation about it is not observed")
     H_inv = np.linalg.inv(H)
     return {"rotation_rad": H_inv @ g, "standard_error_rad": np.sqrt(np.diag(H_inv)), "pairs": int(T_est.shape[0])}
+
+
+def axes_transform(d: np.ndarray) -> np.ndarray:
+    """``D`` (4, 4) of the rotation vector ``d`` (rad; :func:`axes_rotation`): a reference turned
+    by ``d`` is turned back by taking its poses ``G`` to ``G D``, its relative poses ``T`` to
+    ``D^-1 T D``."""
+    D = np.eye(4)
+    D[:3, :3] = gtsam.Rot3.Expmap(np.asarray(d, dtype=float)).matrix()
+    return D

@@ -20,7 +20,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-import gtsam
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -46,7 +45,7 @@ from covo_gtsam.evaluation import (  # noqa: E402
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors, se3_log  # noqa: E402
 from covo_gtsam.nees_breakdown import ACCELERATION_EDGES, by_bins, true_motion  # noqa: E402
 from covo_gtsam.pipeline import calibration_pairs, prior_covariances, run_sequence, stacked_bases  # noqa: E402
-from covo_gtsam.reference_noise import axes_rotation  # noqa: E402
+from covo_gtsam.reference_noise import axes_rotation, axes_transform  # noqa: E402
 
 RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
 #: the per-point model alone (sensor settings): no sensor terms
@@ -744,8 +743,7 @@ def axes_table(data: Path) -> list[str]:
                 for label, (lo, hi) in halves.items() for m in [(p["end"] >= lo) & (p["end"] <= hi)]}
 
     def turned_back(p: dict, d: np.ndarray) -> dict:
-        D = np.eye(4)
-        D[:3, :3] = gtsam.Rot3.Expmap(d).matrix()
+        D = axes_transform(d)
         return {**p, "T_true": np.linalg.inv(D) @ p["T_true"] @ D}
 
     def chains_r(p: dict, covs: np.ndarray, lo: int, hi: int) -> str:
