@@ -800,6 +800,18 @@ def axes_table(data: Path) -> list[str]:
         masks = (q["end"] <= 119, q["end"] >= 120, q["end"] >= 0)
         cells = [" / ".join(f"{v[m].mean():.2f}" for v in nr) for m in masks]
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    lines += ["", "Keyframe mode (`tracking.keyframes`: each frame against its keyframe, pairs over 1 to 15 intervals, "
+              "which overlap, so the standard errors understate): the fit on the mode's own pairs, and the rotation "
+              "ANEES of its pairs against the reference as it is / turned back by the fit on fr1_rpy's consecutive "
+              "pairs (the first table's last row).", "",
+              "| sequence | pairs | d (deg) x / y / z | rotation ANEES: as it is / turned back |", "|---|---|---|---|"]
+    for name in (RPY, DESK):
+        kseq = TumSequence(data / "tum" / name)
+        q, q_covs = reported_pairs(kseq, every_nth(kseq, OdometryConfig().replace(tracking={"keyframes": True}), 1))
+        nr = [anees_cells(relative_pose_tangent_errors(q["T_est"], T), q_covs)[1].mean()
+              for T in (q["T_true"], turned_back(q, fit["all"]["rotation_rad"])["T_true"])]
+        k_fit = axes_rotation(q["T_est"], q["T_true"], q_covs)
+        lines.append(f"| {name} | {k_fit['pairs']} | {angles(k_fit)} | {nr[0]:.2f} / {nr[1]:.2f} |")
     lines += ["", "The default model fitted on one half (as in the first tables) against the reference as it is and "
               "turned back by the fit on all pairs, checked on the other half against the same reference: how much "
               "of the sensor terms the reference's axes took.", "",
