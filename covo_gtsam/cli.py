@@ -18,6 +18,7 @@ import warnings
 from pathlib import Path
 
 from .errors import ConfigError, CovoError, CovoWarning
+from .interrupt import recorded_sigint
 
 def load_config_file(path: str):
     """Deprecated: :func:`covo_gtsam.config.load_config` (removed from the command line module in
@@ -353,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         args, unknown = parser.parse_known_args(argv)
         if unknown:  # the sub-command's usage, not the top level's
             args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), recorded_sigint():
             warnings.showwarning = _show_warning(warnings.showwarning)
             code = args.func(args)
         if argv is None:  # a program run (the console script, python -m) ends here

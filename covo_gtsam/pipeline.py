@@ -50,6 +50,7 @@ from .datasets.tum import TumSequence
 from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData
 from .g2o import G2oWriter
+from .interrupt import check as check_interrupt
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
 from .odometry import EMPTY_DEPTH, OdometryStep, VisualOdometry
 from .prefetch import Prefetcher
@@ -349,6 +350,7 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
                 G2oWriter(out / "graph.g2o") as g2o_w:
             try:
                 for i in range(n):
+                    check_interrupt()  # a Ctrl-C that a finalizer swallowed
                     frame = frames.get(i)
                     t = float(seq.timestamps[i])
                     if isinstance(frame, CovoError):

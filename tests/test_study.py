@@ -10,7 +10,7 @@ import pytest
 from covo_gtsam.cli import main
 
 NUMBERS = ("frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r", "above_9.35_t", "above_9.35_r",
-           "chain_anees_t", "chain_anees_r", "worst_60_t", "worst_60_r")
+           "chain_anees_t", "chain_anees_r", "chain_anees_r_axes_turned_back", "worst_60_t", "worst_60_r")
 
 
 def _rows(out):
@@ -182,6 +182,9 @@ def test_summary_row_takes_the_worst_window_from_the_breakdown():
     assert (row["worst_60_t"], row["worst_60_r"]) == (4.2, 2.9) and set(COLUMNS) <= set(row)
     assert summary_row("s", {"nees_breakdown": {"windows": None}})["worst_60_t"] is None
     assert summary_row("s", {})["worst_60_r"] is None  # no ground truth
+    axes = {"rotation_vector_deg": [-1.4, -0.5, 0.1], "standard_error_deg": [0.3] * 3, "chains_anees_rotation": 1.8}
+    assert summary_row("s", {"reference_axes": axes})["chain_anees_r_axes_turned_back"] == 1.8
+    assert summary_row("s", {"reference_axes": None})["chain_anees_r_axes_turned_back"] is None
 
 
 def test_evaluate_into_a_folder_used_before_names_the_earlier_sequences_left(small_sample, tmp_path, capsys):
