@@ -363,6 +363,11 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
     return ev
 
 
+#: largest standard error (deg) of :func:`reference_axes`'s rotation with which the chains are
+#: turned back by it
+AXES_OBSERVED_DEG = 2.0
+
+
 def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T_est: np.ndarray,
                    T_true: np.ndarray, covs: np.ndarray, jitter=None) -> dict:
     """``metrics.json``'s ``reference_axes``: the fixed rotation by which the reference's axes are
@@ -382,11 +387,6 @@ def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T
     return {"rotation_vector_deg": np.rad2deg(fit["rotation_rad"]).tolist(),
             "standard_error_deg": np.rad2deg(fit["standard_error_rad"]).tolist(),
             "pairs": fit["pairs"], "chains_anees_rotation": chains}
-
-
-#: largest standard error (deg) of :func:`reference_axes`'s rotation with which the chains are
-#: turned back by it
-AXES_OBSERVED_DEG = 2.0
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -732,9 +732,10 @@ PRINCIPAL_ROWS = (245.3, 255.3, 265.3)
 def axes_table(data: Path) -> list[str]:
     """The fixed rotation between the reference's axes and the camera's
     (:func:`covo_gtsam.reference_noise.axes_rotation`) fitted per half of fr1_rpy and on all its
-    pairs; the 30-pair chains' rotation ANEES per half against the reference turned back by the
-    fit on all pairs; then the same fit with the camera's
-    principal point moved up and down by 10 px."""
+    pairs (covo's and OpenCV's), with the 30-pair chains' rotation ANEES per half against the
+    reference turned back by the fit on all pairs; then, against the reference as it is and turned
+    back: every 2nd and 3rd frame, keyframe mode (fr1_rpy and fr1_desk), the sensor terms fitted on
+    one half; and the fit with the camera's principal point moved up and down by 10 px."""
     seq = TumSequence(data / "tum" / RPY)
     halves = {"frames 1-119": (1, 119), "frames 120-239": (120, 239), "all": (1, 239)}
 
