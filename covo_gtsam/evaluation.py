@@ -373,7 +373,8 @@ def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T
     """``metrics.json``'s ``reference_axes``: the fixed rotation by which the reference's axes are
     turned against the estimates' (:func:`~covo_gtsam.reference_noise.axes_rotation` of the pairs
     ``T_est``, ``T_true`` with ``covs``, the reference's jitter in them), a rotation vector about the
-    camera's x / y / z axes in degrees with its standard errors, and the rotation ANEES of the
+    camera's x / y / z axes in degrees with its standard errors and the fit's reduced chi-square
+    (the standard errors are scaled up by it where it exceeds 1), and the rotation ANEES of the
     chains (:func:`chain_nees`) against the reference turned back by it (fitted on the same pairs;
     None without a chain, or where a standard error exceeds :data:`AXES_OBSERVED_DEG`: the
     rotation is not observed about every axis). A check of the reference (a hand-eye rotation, a
@@ -386,7 +387,7 @@ def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T
             chains = anees(chain_nees(steps, {t: G @ D for t, G in gt.items()}, jitter=jitter)[0])
     return {"rotation_vector_deg": np.rad2deg(fit["rotation_rad"]).tolist(),
             "standard_error_deg": np.rad2deg(fit["standard_error_rad"]).tolist(),
-            "pairs": fit["pairs"], "chains_anees_rotation": chains}
+            "reduced_chi2": fit["reduced_chi2"], "pairs": fit["pairs"], "chains_anees_rotation": chains}
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

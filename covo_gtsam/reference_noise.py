@@ -107,7 +107,7 @@ def pair_jitter_covariances(stamps: np.ndarray, rotation_sd: np.ndarray, ref_sta
 def axes_rotation(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> dict:
     """The fixed rotation ``d`` by which a reference's axes are turned against the estimates' that
     best explains the pairs' rotation errors: ``{"rotation_rad": d (3,), "standard_error_rad": (3,),
-    "pairs": n}``, ``d`` a rotation vector (rad) about the camera's axes.
+    "reduced_chi2": float, "pairs": n}``, ``d`` a rotation vector (rad) about the camera's axes.
 
     A reference whose poses are the camera's ``G`` times ``D^-1``, ``D = Exp(d)`` (its axes turned
     by ``D``, as an error of a hand-eye calibration turns them), reports each relative pose as
@@ -115,8 +115,11 @@ def axes_rotation(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> di
     reference frame's axes, right perturbation) is ``(R_true^T - I) d`` to first order in ``d`` and
     the pair's own error, about ``d x w`` for a turn ``w``. ``d`` is the generalized least-squares
     fit over the pairs ``T_est``, ``T_true`` (N, 4, 4) with the rotation blocks of ``covs`` (N, 6,
-    6; tangent ``[omega, v]``); its standard errors hold if the pairs are independent and ``covs``
-    right (they are not scaled by the fit's residuals). A component is observed only by turns
+    6; tangent ``[omega, v]``); its standard errors take the pairs as independent and ``covs`` as
+    right, scaled up by ``sqrt`` of the fit's reduced chi-square (``"reduced_chi2"``: the residuals'
+    sum of squares under ``covs`` over ``3 n - 3``) where that exceeds 1, so covariances that
+    understate the pairs' errors do not make ``d`` look surer than it is (never scaled down: a
+    conservative ``covs`` keeps conservative errors). A component is observed only by turns
     about the other two axes: pairs that all turn about x leave ``d_x`` with a large standard
     error. The error a chain of ``k`` pairs gains from ``d`` grows with its net turn, while its
     covariance composed from independent pairs grows with ``sqrt(k)``. :class:`InputError` with
@@ -133,7 +136,11 @@ def axes_rotation(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> di
     if np.linalg.cond(H) > 1e8:
         raise InputError("the pairs turn about one axis only: the rotation about it is not observed")
     H_inv = np.linalg.inv(H)
-    return {"rotation_rad": H_inv @ g, "standard_error_rad": np.sqrt(np.diag(H_inv)), "pairs": int(T_est.shape[0])}
+    d = H_inv @ g
+    r = e - J @ d
+    reduced = float(np.einsum("ni,nij,nj->", r, W, r) / (3 * T_est.shape[0] - 3))
+    return {"rotation_rad": d, "standard_error_rad": np.sqrt(np.diag(H_inv) * max(1.0, reduced)),
+            "reduced_chi2": reduced, "pairs": int(T_est.shape[0])}
 
 
 def axes_transform(d: np.ndarray) -> np.ndarray:

@@ -115,9 +115,10 @@ def test_pair_jitter_covariance_matches_a_monte_carlo_of_interpolated_sample_noi
         assert np.all(C[i][3:, :] == 0) and np.all(C[i][:, 3:] == 0)
 
 
-def turned_reference_pairs(d: np.ndarray, n: int, rng, axis_only: int | None = None):
+def turned_reference_pairs(d: np.ndarray, n: int, rng, axis_only: int | None = None, noise: float = 1.0):
     """``n`` pairs turning up to about 4 degrees about random axes (or about ``axis_only`` alone),
-    their estimates off by rotation noise drawn from random covariances (right perturbation), and a
+    their estimates off by rotation noise drawn from random covariances (times ``noise`` in s.d.;
+    right perturbation), and a
     reference that reports each as ``D T D^-1`` with ``D = Exp(d)`` (an exact conjugation)."""
     turns = rng.normal(0.0, np.deg2rad(2.0), (n, 3))
     turns[:, 1] += 1.5 * turns[:, 0]  # turns about x come with turns about y: d_x and d_y correlate
@@ -132,9 +133,9 @@ def turned_reference_pairs(d: np.ndarray, n: int, rng, axis_only: int | None = N
     covs = np.zeros((n, 6, 6))
     covs[:, :3, :3] = A @ A.transpose(0, 2, 1) + np.eye(3) * np.deg2rad(0.01) ** 2
     covs[:, 3:, 3:] = np.eye(3) * 1e-6
-    noise = np.einsum("nij,nj->ni", np.linalg.cholesky(covs[:, :3, :3]), rng.standard_normal((n, 3)))
+    drawn = noise * np.einsum("nij,nj->ni", np.linalg.cholesky(covs[:, :3, :3]), rng.standard_normal((n, 3)))
     T_est = T.copy()
-    T_est[:, :3, :3] = T[:, :3, :3] @ Rotation.from_rotvec(noise).as_matrix()
+    T_est[:, :3, :3] = T[:, :3, :3] @ Rotation.from_rotvec(drawn).as_matrix()
     D = np.eye(4)
     D[:3, :3] = Rotation.from_rotvec(d).as_matrix()
     return T_est, D @ T @ np.linalg.inv(D), covs
@@ -153,6 +154,20 @@ def test_axes_rotation_is_recovered_with_the_spread_of_a_monte_carlo():
     # a reference without a turn of its axes: d within its error of zero
     zero = axes_rotation(*turned_reference_pairs(np.zeros(3), 150, rng))
     np.testing.assert_array_less(np.abs(zero["rotation_rad"]), 4 * zero["standard_error_rad"])
+
+
+@pytest.mark.parametrize("noise", [2.0, 0.5])
+def test_axes_rotation_errors_grow_with_covariances_that_understate_and_do_not_shrink(noise):
+    """Errors twice as large as the covariances say: the reduced chi-square reads about 4 and the
+    standard errors follow the fits' spread; half as large: they stay those of the covariances,
+    twice the spread."""
+    rng = np.random.default_rng(5)
+    fits = [axes_rotation(*turned_reference_pairs(np.deg2rad([1.0, 0.5, -0.5]), 150, rng, noise=noise))
+            for _ in range(400)]
+    est = np.array([f["rotation_rad"] for f in fits])
+    se = np.array([f["standard_error_rad"] for f in fits]).mean(axis=0)
+    assert np.mean([f["reduced_chi2"] for f in fits]) == pytest.approx(noise**2, rel=0.05)
+    np.testing.assert_allclose(est.std(axis=0) / se, min(noise, 1.0), rtol=0.1)
 
 
 def test_axes_rotation_about_the_axis_of_every_turn_is_not_observed():
