@@ -360,10 +360,7 @@ def main(argv: list[str] | None = None) -> int:
         if argv is None:  # a program run (the console script, python -m) ends here
             gc.freeze()  # spares the interpreter's shutdown its collections over every object left
         return code
-    except CovoError as exc:
-        print(f"covo: error: {exc}", file=sys.stderr)
-        return 2
-    except CovoWarning as exc:  # raised where Python's warnings options turn warnings into errors
+    except (CovoError, CovoWarning) as exc:  # a warning is raised where Python's options make warnings errors
         print(f"covo: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
