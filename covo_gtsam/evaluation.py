@@ -24,7 +24,13 @@ from .geometry import invert_pose
 from .metrics import anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
-from .reference_noise import axes_rotation, axes_transform, pair_jitter_covariances, reference_jitter
+from .reference_noise import (
+    axes_rotation,
+    axes_transform,
+    pair_jitter_covariances,
+    reference_jitter,
+    twist_change_response,
+)
 
 #: Longest median interval (s) between ground-truth samples whose jitter :func:`reference_statistics`
 #: measures (a 100 Hz motion-capture reference: 0.01 s).
@@ -164,7 +170,7 @@ class RunEvaluation:
     in (``has_ground_truth`` False; :meth:`to_dict` writes the other statistics null). With it, a
     statistic that cannot be computed is None and ``not_computed[name]`` says why
     (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``, ``"nees_breakdown"``,
-    ``"reference_jitter"``, ``"reference_axes"``); its array, if it has one, is then empty, or
+    ``"reference_jitter"``, ``"reference_axes"``, ``"twist_change_response"``); its array, if it has one, is then empty, or
     holds the values that made it fail (not finite).
     """
 
@@ -198,6 +204,8 @@ class RunEvaluation:
     reference: dict | None = None
     #: the fixed rotation between the reference's axes and the estimates' (:func:`reference_axes`)
     axes: dict | None = None
+    #: how the pairs' rotation errors follow the change of the angular velocity (:func:`twist_change`)
+    twist_change: dict | None = None
     #: whether the NEES values take the ground truth's own jitter into account (its samples were at hand)
     nees_with_reference_jitter: bool = False
     #: :func:`consistency_statistics` of the pairs under the reported covariances alone, without the
@@ -237,7 +245,8 @@ class RunEvaluation:
     def to_dict(self) -> dict:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then ``not_computed``,
         ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`, ``chains``,
-        ``nees_breakdown``, ``reference_jitter``, ``reference_axes``, ``nees_with_reference_jitter`` and
+        ``nees_breakdown``, ``reference_jitter``, ``reference_axes``, ``twist_change_response``,
+        ``nees_with_reference_jitter`` and
         ``without_reference_jitter`` (without ground truth null, each with that reason under
         ``not_computed``), then ``self_calibration`` and ``version`` when they are set."""
         out: dict = {
@@ -258,7 +267,7 @@ class RunEvaluation:
         rpe = self.rpe if self.has_ground_truth else dict.fromkeys(RPE_DELTAS)
         out["not_computed"] = self.not_computed if self.has_ground_truth else dict.fromkeys(
             (*(f"rpe_{delta}" for delta in rpe), "ate", "anees", "chains", "nees_breakdown", "reference_jitter",
-             "reference_axes"), "the sequence has no ground truth")
+             "reference_axes", "twist_change_response"), "the sequence has no ground truth")
         out["segments"] = self.segments
         out.update({f"rpe_{delta}": stats for delta, stats in rpe.items()})
         out["ate"] = self.ate
@@ -267,6 +276,7 @@ class RunEvaluation:
         out["nees_breakdown"] = self.breakdown
         out["reference_jitter"] = self.reference
         out["reference_axes"] = self.axes
+        out["twist_change_response"] = self.twist_change
         out["nees_with_reference_jitter"] = self.nees_with_reference_jitter
         out["without_reference_jitter"] = self.without_reference_jitter
         if self.self_calibration is not None:
@@ -360,7 +370,22 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
     ev.breakdown = _computed(ev.not_computed, "nees_breakdown", breakdown, no_pairs)
     ev.axes = _computed(ev.not_computed, "reference_axes",
                         partial(reference_axes, steps, gt, T_est, T_true, covs, jitter), no_pairs)
+    ev.twist_change = _computed(ev.not_computed, "twist_change_response",
+                                partial(twist_change, T_est, T_true, covs, ref_stamps, cur_stamps), no_pairs)
     return ev
+
+
+def twist_change(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray, ref_stamps: np.ndarray,
+                 cur_stamps: np.ndarray) -> dict:
+    """``metrics.json``'s ``twist_change_response``: how the pairs' rotation errors follow the change
+    of the true angular velocity from the pair before (``backward_ms``) and to the pair after
+    (``forward_ms``), in milliseconds, with standard errors and the fit's reduced chi-square
+    (:func:`~covo_gtsam.reference_noise.twist_change_response`; ``covs`` with the reference's
+    jitter). A check of the timing between the images and the reference, not a correction."""
+    fit = twist_change_response(T_est, T_true, covs, ref_stamps, cur_stamps)
+    return {"backward_ms": 1e3 * fit["backward_s"], "forward_ms": 1e3 * fit["forward_s"],
+            "standard_error_ms": (1e3 * fit["standard_error_s"]).tolist(), "reduced_chi2": fit["reduced_chi2"],
+            "pairs": fit["pairs"]}
 
 
 #: largest standard error (deg) of :func:`reference_axes`'s rotation with which the chains are

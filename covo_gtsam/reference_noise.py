@@ -15,7 +15,9 @@ same axes, metres. docs/derivation.md ("The reference's own noise") has the meas
 
 :func:`axes_rotation` measures the other error a reference brings: a fixed rotation between its
 axes and the camera's (a hand-eye calibration's, or a principal point's), which turns every pose
-change it reports. It needs the odometry's estimates, and is a check, not a correction.
+change it reports. :func:`twist_change_response` measures how the pairs' rotation errors follow
+the change of the camera's angular velocity from pair to pair (a timing difference between the
+images and the reference). Both need the odometry's estimates, and are checks, not corrections.
 """
 
 from __future__ import annotations
@@ -130,17 +132,69 @@ def axes_rotation(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> di
         raise InputError(f"need two or more pairs with covariances (N, 6, 6), got {covs.shape} for {T_est.shape[0]}")
     e = relative_pose_tangent_errors(T_est, T_true)[:, :3]
     J = T_true[:, :3, :3].transpose(0, 2, 1) - np.eye(3)
+    d, se, reduced = _rotation_gls(e, J, covs, "the pairs turn about one axis only: the rotation about it is not "
+                                   "observed")
+    return {"rotation_rad": d, "standard_error_rad": se, "reduced_chi2": reduced, "pairs": int(T_est.shape[0])}
+
+
+def _rotation_gls(e: np.ndarray, J: np.ndarray, covs: np.ndarray, unobserved: str
+                  ) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(x, standard errors, reduced chi-square)`` of the generalized least-squares fit of the
+    rotation errors ``e`` (N, 3) by ``J x`` (``J`` (N, 3, P)) under the rotation blocks of ``covs``
+    (N, 6, 6); the standard errors scaled up by ``sqrt`` of the reduced chi-square where it
+    exceeds 1, never down. :class:`InputError` (``unobserved``) for an ill-conditioned fit."""
     W = np.linalg.inv(covs[:, :3, :3])
     H = np.einsum("nki,nkl,nlj->ij", J, W, J)
     g = np.einsum("nki,nkl,nl->i", J, W, e)
-    if np.linalg.cond(H) > 1e8:
-        raise InputError("the pairs turn about one axis only: the rotation about it is not observed")
+    with np.errstate(all="ignore"):
+        observed = np.linalg.cond(H) <= 1e8  # not NaN (nothing observed) or large
+    if not observed:
+        raise InputError(unobserved)
     H_inv = np.linalg.inv(H)
-    d = H_inv @ g
-    r = e - J @ d
-    reduced = float(np.einsum("ni,nij,nj->", r, W, r) / (3 * T_est.shape[0] - 3))
-    return {"rotation_rad": d, "standard_error_rad": np.sqrt(np.diag(H_inv) * max(1.0, reduced)),
-            "reduced_chi2": reduced, "pairs": int(T_est.shape[0])}
+    x = H_inv @ g
+    r = e - np.einsum("nij,j->ni", J, x)
+    reduced = float(np.einsum("ni,nij,nj->", r, W, r) / (e.size - x.size))
+    return x, np.sqrt(np.diag(H_inv) * max(1.0, reduced)), reduced
+
+
+def twist_change_response(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray, ref_stamps: np.ndarray,
+                          cur_stamps: np.ndarray) -> dict:
+    """How the pairs' rotation errors follow the change of the camera's angular velocity:
+    ``{"backward_s", "forward_s", "standard_error_s": (2,), "reduced_chi2", "pairs"}``.
+
+    ``w_k`` is pair ``k``'s true mean angular velocity (the rotation vector of ``T_true`` over its
+    stamps' interval, rad/s). For each pair linked to a pair before it (ending at its reference
+    frame) and after it (starting at its frame), the rotation error (``Log(R_est^T R_true)``, rad,
+    as :func:`axes_rotation`'s) is fitted as ``a (w_k - w_{k-1}) + c (w_{k+1} - w_k)`` by
+    generalized least squares under the rotation blocks of ``covs`` (N, 6, 6); ``a`` is
+    ``"backward_s"``, ``c`` ``"forward_s"`` (seconds), standard errors as :func:`axes_rotation`'s.
+    Images taken ``L`` seconds before their stamps (a common delay) give ``a + c = L`` with ``c``
+    somewhat smaller than ``a`` (the change is centred ``L / 2`` before the pair's middle); images each posed
+    a share ``b`` of the way back along the interval ``dt`` before their own frame (a blend of each
+    pair's motion into the next) give ``a = b dt`` and ``c = 0``. The reference's own jitter enters
+    both the errors and the changes and biases ``a`` up and ``c`` down by about ``3 s^2 / dt`` over
+    the changes' variance (``s`` its rotation s.d. per frame). :class:`InputError` with fewer than
+    two linked pairs or changes about one axis only."""
+    T_est, T_true = np.asarray(T_est, dtype=float), np.asarray(T_true, dtype=float)
+    covs = np.asarray(covs, dtype=float)
+    ref_stamps, cur_stamps = np.asarray(ref_stamps, dtype=float), np.asarray(cur_stamps, dtype=float)
+    n = T_est.shape[0]
+    if covs.shape != (n, 6, 6) or ref_stamps.shape != (n,) or cur_stamps.shape != (n,):
+        raise InputError(f"need pairs (N, 4, 4) with covariances (N, 6, 6) and stamps (N,), got {covs.shape}, "
+                         f"{ref_stamps.shape} and {cur_stamps.shape} for {n}")
+    dt = cur_stamps - ref_stamps
+    linked = np.zeros(n, bool)
+    linked[1:-1] = (ref_stamps[1:-1] == cur_stamps[:-2]) & (cur_stamps[1:-1] == ref_stamps[2:])
+    linked &= np.r_[False, dt[:-1] > 0] & (dt > 0) & np.r_[dt[1:] > 0, False]
+    k = np.flatnonzero(linked)
+    if len(k) < 2:
+        raise InputError(f"need two or more pairs linked to a pair before and after them, got {len(k)}")
+    w = se3_log(T_true)[:, :3] / np.where(dt > 0, dt, 1.0)[:, None]
+    e = relative_pose_tangent_errors(T_est[k], T_true[k])[:, :3]
+    J = np.stack([w[k] - w[k - 1], w[k + 1] - w[k]], axis=2)
+    x, se, reduced = _rotation_gls(e, J, covs[k], "the angular velocity changes too little, or about one axis only")
+    return {"backward_s": float(x[0]), "forward_s": float(x[1]), "standard_error_s": se,
+            "reduced_chi2": reduced, "pairs": int(len(k))}
 
 
 def axes_transform(d: np.ndarray) -> np.ndarray:

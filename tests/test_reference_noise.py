@@ -176,3 +176,110 @@ def test_axes_rotation_about_the_axis_of_every_turn_is_not_observed():
         axes_rotation(*turned_reference_pairs(np.deg2rad([1.0, 0.0, 0.0]), 50, rng, axis_only=0))
     with pytest.raises(InputError, match="two or more pairs"):
         axes_rotation(*(a[:1] for a in turned_reference_pairs(np.zeros(3), 5, rng)))
+
+
+FRAME_DT = 1.0 / 30.0
+
+
+def turning_camera(seed: int = 0):
+    """A camera turning by sums of 0.3-1.5 Hz sines (up to about 1.5 rad/s): its exact pose (4, 4) at
+    any time ``t`` (s), and its frames' stamps at 30 Hz."""
+    rng = np.random.default_rng(seed)
+    freq, phase = rng.uniform(0.3, 1.5, (3, 3)), rng.uniform(0, 2 * np.pi, (3, 3))
+    amp = 0.05 / freq  # rad: about 0.3 rad/s per sine at its peak
+
+    def pose(t: float) -> np.ndarray:
+        G = np.eye(4)
+        G[:3, :3] = Rotation.from_euler("xyz", (amp * np.sin(2 * np.pi * freq * t + phase)).sum(axis=1)).as_matrix()
+        G[:3, 3] = 0.1 * np.sin(2 * np.pi * freq[:, 0] * t)
+        return G
+
+    return pose, np.arange(301) * FRAME_DT
+
+
+def pairs_of(frame_poses: list) -> np.ndarray:
+    """Consecutive relative poses ``T_ref,cur`` (N, 4, 4) of frame poses (4, 4) ``T_world,cam``."""
+    G = np.array(frame_poses)
+    return np.linalg.inv(G[:-1]) @ G[1:]
+
+
+def change_response(T_est: np.ndarray, T_true: np.ndarray, stamps: np.ndarray, covs: np.ndarray | None = None):
+    from covo_gtsam.reference_noise import twist_change_response
+
+    if covs is None:
+        covs = np.tile(np.eye(6) * np.deg2rad(0.1) ** 2, (len(T_true), 1, 1))
+    return twist_change_response(T_est, T_true, covs, stamps[:-1], stamps[1:])
+
+
+def test_twist_change_response_of_a_common_delay_and_of_a_blend_of_motions():
+    """Exact poses (no first-order formula): images taken 10 ms before their stamps respond to the
+    changes before and after the pair, ``a + c = L`` with ``c / a = (dt - L) / (dt + L)`` (the
+    change centred ``L / 2`` before the pair's middle; to first order); images each posed 0.3 of the way back along
+    the interval before them respond to the change from the pair before alone, ``a = 0.3 dt``."""
+    pose, t = turning_camera()
+    T_true = pairs_of([pose(s) for s in t])
+    L = 0.010
+    delayed = change_response(pairs_of([pose(s - L) for s in t]), T_true, t)
+    assert delayed["pairs"] == len(t) - 3
+    assert delayed["backward_s"] + delayed["forward_s"] == pytest.approx(L, rel=0.03)
+    assert delayed["forward_s"] / delayed["backward_s"] == pytest.approx((FRAME_DT - L) / (FRAME_DT + L), rel=0.05)
+    import gtsam
+
+    beta = 0.3
+    blended = [pose(s) @ gtsam.Pose3.Expmap(-beta * gtsam.Pose3.Logmap(gtsam.Pose3(
+        np.linalg.inv(pose(s - FRAME_DT)) @ pose(s)))).matrix() for s in t]
+    blend = change_response(pairs_of(blended), T_true, t)
+    assert blend["backward_s"] == pytest.approx(beta * FRAME_DT, rel=0.02)
+    assert abs(blend["forward_s"]) < 0.02 * beta * FRAME_DT
+    assert change_response(T_true, T_true, t)["backward_s"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_twist_change_response_has_the_spread_of_a_monte_carlo():
+    """Rotation noise drawn from each pair's covariance (sizes spread over a factor of 10, axes
+    correlated) on the blend above: the fits scatter by their standard errors."""
+    import gtsam
+
+    pose, t = turning_camera(1)
+    T_true = pairs_of([pose(s) for s in t])
+    blended = pairs_of([pose(s) @ gtsam.Pose3.Expmap(-0.3 * gtsam.Pose3.Logmap(gtsam.Pose3(
+        np.linalg.inv(pose(s - FRAME_DT)) @ pose(s)))).matrix() for s in t])
+    rng = np.random.default_rng(2)
+    n = len(T_true)
+    A = rng.normal(0.0, 1.0, (n, 3, 3)) * np.deg2rad(0.1 * 10 ** rng.uniform(-0.5, 0.5, n))[:, None, None]
+    A[:, :, 0] += 2.0 * A[:, :, 1]
+    covs = np.tile(np.eye(6) * 1e-6, (n, 1, 1))
+    covs[:, :3, :3] = A @ A.transpose(0, 2, 1) + np.eye(3) * np.deg2rad(0.01) ** 2
+    L_chol = np.linalg.cholesky(covs[:, :3, :3])
+    fits = []
+    for _ in range(300):
+        T_est = blended.copy()
+        noise = np.einsum("nij,nj->ni", L_chol, rng.standard_normal((n, 3)))
+        T_est[:, :3, :3] = blended[:, :3, :3] @ Rotation.from_rotvec(noise).as_matrix()
+        fits.append(change_response(T_est, T_true, t, covs))
+    est = np.array([[f["backward_s"], f["forward_s"]] for f in fits])
+    se = np.array([f["standard_error_s"] for f in fits]).mean(axis=0)
+    np.testing.assert_allclose(est.std(axis=0) / se, 1.0, atol=0.12)  # the ratio's own s.d. is about 0.04
+    exact = change_response(blended, T_true, t, covs)  # without noise
+    np.testing.assert_array_less(np.abs(est.mean(axis=0) - [exact["backward_s"], exact["forward_s"]]),
+                                 4 * se / np.sqrt(len(fits)))
+    assert np.mean([f["reduced_chi2"] for f in fits]) == pytest.approx(1.0, rel=0.05)
+
+
+def test_twist_change_response_needs_linked_pairs_and_changes():
+    pose, t = turning_camera()
+    T = pairs_of([pose(s) for s in t[:4]])
+    with pytest.raises(InputError, match="two or more pairs linked"):
+        change_response(T[:2], T[:2], t[:3])
+    steady = np.tile(np.eye(4), (10, 1, 1))
+    steady[:, :3, :3] = Rotation.from_rotvec([0.03, 0.0, 0.0]).as_matrix()
+    with pytest.raises(InputError, match="changes too little"):
+        change_response(steady, steady, np.arange(11) / 32.0)  # stamps exact in binary: no change at all
+    # pairs that do not link (a lost frame between them) are left out
+    stamps = np.arange(8) * FRAME_DT
+    T = pairs_of([pose(s) for s in stamps])
+    fit = change_response(T, T, stamps)
+    from covo_gtsam.reference_noise import twist_change_response
+
+    gap = twist_change_response(T[[0, 1, 2, 4, 5, 6]], T[[0, 1, 2, 4, 5, 6]], np.tile(np.eye(6), (6, 1, 1)),
+                                stamps[[0, 1, 2, 4, 5, 6]], stamps[[1, 2, 3, 5, 6, 7]])
+    assert fit["pairs"] == 5 and gap["pairs"] == 2
