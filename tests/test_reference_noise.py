@@ -283,3 +283,15 @@ def test_twist_change_response_needs_linked_pairs_and_changes():
     gap = twist_change_response(T[[0, 1, 2, 4, 5, 6]], T[[0, 1, 2, 4, 5, 6]], np.tile(np.eye(6), (6, 1, 1)),
                                 stamps[[0, 1, 2, 4, 5, 6]], stamps[[1, 2, 3, 5, 6, 7]])
     assert fit["pairs"] == 5 and gap["pairs"] == 2
+
+
+def test_metrics_json_reports_the_twist_change_response_in_milliseconds():
+    from covo_gtsam.evaluation import twist_change
+
+    pose, t = turning_camera()
+    T_true = pairs_of([pose(s) for s in t])
+    covs = np.tile(np.eye(6) * np.deg2rad(0.1) ** 2, (len(T_true), 1, 1))
+    out = twist_change(pairs_of([pose(s - 0.010) for s in t]), T_true, covs, t[:-1], t[1:])
+    assert out["backward_ms"] + out["forward_ms"] == pytest.approx(10.0, rel=0.03)
+    assert out["pairs"] == len(t) - 3 and len(out["standard_error_ms"]) == 2
+    assert all(isinstance(v, float) for v in out["standard_error_ms"])  # JSON-ready
