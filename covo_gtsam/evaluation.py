@@ -379,13 +379,15 @@ def twist_change(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray, ref_st
                  cur_stamps: np.ndarray) -> dict:
     """``metrics.json``'s ``twist_change_response``: how the pairs' rotation errors follow the change
     of the true angular velocity from the pair before (``backward_ms``) and to the pair after
-    (``forward_ms``), in milliseconds, with standard errors and the fit's reduced chi-square
+    (``forward_ms``), in milliseconds, and the share of each turn the estimates miss
+    (``rotation_scale``), with standard errors and the fit's reduced chi-square
     (:func:`~covo_gtsam.reference_noise.twist_change_response`; ``covs`` with the reference's
     jitter). A check of the timing between the images and the reference, not a correction."""
     fit = twist_change_response(T_est, T_true, covs, ref_stamps, cur_stamps)
+    se = fit["standard_error"]
     return {"backward_ms": 1e3 * fit["backward_s"], "forward_ms": 1e3 * fit["forward_s"],
-            "standard_error_ms": (1e3 * fit["standard_error_s"]).tolist(), "reduced_chi2": fit["reduced_chi2"],
-            "pairs": fit["pairs"]}
+            "standard_error_ms": (1e3 * se[:2]).tolist(), "rotation_scale": fit["rotation_scale"],
+            "rotation_scale_standard_error": float(se[2]), "reduced_chi2": fit["reduced_chi2"], "pairs": fit["pairs"]}
 
 
 #: largest standard error (deg) of :func:`reference_axes`'s rotation with which the chains are

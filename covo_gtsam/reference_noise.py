@@ -160,21 +160,23 @@ def _rotation_gls(e: np.ndarray, J: np.ndarray, covs: np.ndarray, unobserved: st
 def twist_change_response(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray, ref_stamps: np.ndarray,
                           cur_stamps: np.ndarray) -> dict:
     """How the pairs' rotation errors follow the change of the camera's angular velocity:
-    ``{"backward_s", "forward_s", "standard_error_s": (2,), "reduced_chi2", "pairs"}``.
+    ``{"backward_s", "forward_s", "rotation_scale", "standard_error": (3,), "reduced_chi2", "pairs"}``.
 
-    ``w_k`` is pair ``k``'s true mean angular velocity (the rotation vector of ``T_true`` over its
-    stamps' interval, rad/s). For each pair linked to a pair before it (ending at its reference
-    frame) and after it (starting at its frame), the rotation error (``Log(R_est^T R_true)``, rad,
-    as :func:`axes_rotation`'s) is fitted as ``a (w_k - w_{k-1}) + c (w_{k+1} - w_k)`` by
-    generalized least squares under the rotation blocks of ``covs`` (N, 6, 6); ``a`` is
-    ``"backward_s"``, ``c`` ``"forward_s"`` (seconds), standard errors as :func:`axes_rotation`'s.
-    Images taken ``L`` seconds before their stamps (a common delay) give ``a + c = L`` with ``c``
-    somewhat smaller than ``a`` (the change is centred ``L / 2`` before the pair's middle); images each posed
-    a share ``b`` of the way back along the interval ``dt`` before their own frame (a blend of each
-    pair's motion into the next) give ``a = b dt`` and ``c = 0``. The reference's own jitter enters
-    both the errors and the changes and biases ``a`` up and ``c`` down by about ``3 s^2 / dt`` over
-    the changes' variance (``s`` its rotation s.d. per frame). :class:`InputError` with fewer than
-    two linked pairs or changes about one axis only."""
+    ``w_k`` is pair ``k``'s true mean angular velocity (the rotation vector ``r_k`` of ``T_true``
+    over its stamps' interval, rad/s). For each pair linked to a pair before it (ending at its
+    reference frame) and after it (starting at its frame), the rotation error
+    (``Log(R_est^T R_true)``, rad, as :func:`axes_rotation`'s) is fitted as
+    ``a (w_k - w_{k-1}) + c (w_{k+1} - w_k) + s r_k`` by generalized least squares under the rotation
+    blocks of ``covs`` (N, 6, 6); ``a`` is ``"backward_s"``, ``c`` ``"forward_s"`` (seconds) and ``s``
+    ``"rotation_scale"`` (the share of each turn the estimates miss), standard errors (s, s, 1) as
+    :func:`axes_rotation`'s. Images taken ``L`` seconds before their stamps (a common delay) give
+    ``a + c = L`` with ``c`` somewhat smaller than ``a`` (the change is centred ``L / 2`` before the
+    pair's middle); images each posed a share ``b`` of the way back along the interval ``dt`` before
+    their own frame (a blend of each pair's motion into the next) give ``a = b dt`` and ``c = 0``;
+    turns estimated ``1 - s`` times their size (a focal length's error, an estimator's shrinkage)
+    give ``s`` alone, which without its own term would read as ``a = -c``. The reference's own
+    jitter enters both the errors and the changes and biases ``a`` up and ``c`` down.
+    :class:`InputError` with fewer than three linked pairs or changes about one axis only."""
     T_est, T_true = np.asarray(T_est, dtype=float), np.asarray(T_true, dtype=float)
     covs = np.asarray(covs, dtype=float)
     ref_stamps, cur_stamps = np.asarray(ref_stamps, dtype=float), np.asarray(cur_stamps, dtype=float)
@@ -187,14 +189,15 @@ def twist_change_response(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarra
     linked[1:-1] = (ref_stamps[1:-1] == cur_stamps[:-2]) & (cur_stamps[1:-1] == ref_stamps[2:])
     linked &= np.r_[False, dt[:-1] > 0] & (dt > 0) & np.r_[dt[1:] > 0, False]
     k = np.flatnonzero(linked)
-    if len(k) < 2:
-        raise InputError(f"need two or more pairs linked to a pair before and after them, got {len(k)}")
-    w = se3_log(T_true)[:, :3] / np.where(dt > 0, dt, 1.0)[:, None]
+    if len(k) < 3:
+        raise InputError(f"need three or more pairs linked to a pair before and after them, got {len(k)}")
+    r = se3_log(T_true)[:, :3]
+    w = r / np.where(dt > 0, dt, 1.0)[:, None]
     e = relative_pose_tangent_errors(T_est[k], T_true[k])[:, :3]
-    J = np.stack([w[k] - w[k - 1], w[k + 1] - w[k]], axis=2)
+    J = np.stack([w[k] - w[k - 1], w[k + 1] - w[k], r[k]], axis=2)
     x, se, reduced = _rotation_gls(e, J, covs[k], "the angular velocity changes too little, or about one axis only")
-    return {"backward_s": float(x[0]), "forward_s": float(x[1]), "standard_error_s": se,
-            "reduced_chi2": reduced, "pairs": int(len(k))}
+    return {"backward_s": float(x[0]), "forward_s": float(x[1]), "rotation_scale": float(x[2]),
+            "standard_error": se, "reduced_chi2": reduced, "pairs": int(len(k))}
 
 
 def axes_transform(d: np.ndarray) -> np.ndarray:

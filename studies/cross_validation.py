@@ -45,7 +45,7 @@ from covo_gtsam.evaluation import (  # noqa: E402
 from covo_gtsam.metrics import nees, relative_pose_tangent_errors, se3_log  # noqa: E402
 from covo_gtsam.nees_breakdown import ACCELERATION_EDGES, by_bins, true_motion  # noqa: E402
 from covo_gtsam.pipeline import calibration_pairs, prior_covariances, run_sequence, stacked_bases  # noqa: E402
-from covo_gtsam.reference_noise import axes_rotation, axes_transform  # noqa: E402
+from covo_gtsam.reference_noise import axes_rotation, axes_transform, twist_change_response  # noqa: E402
 
 RPY, DESK = "rgbd_dataset_freiburg1_rpy_head240", "rgbd_dataset_freiburg1_desk_9frames"
 #: the per-point model alone (sensor settings): no sensor terms
@@ -841,6 +841,87 @@ def axes_table(data: Path) -> list[str]:
     return lines + [""]
 
 
+def _linked(p: dict) -> np.ndarray:
+    """Indices of the pairs of ``p`` (:func:`reported_pairs`) with a pair ending at their first frame
+    and one starting at their last, and one more before (for the previous change)."""
+    end = p["end"]
+    return np.array([i for i in range(2, len(end) - 1)
+                     if end[i - 2] == end[i] - 2 and end[i - 1] == end[i] - 1 and end[i + 1] == end[i] + 1])
+
+
+def twist_change_table(data: Path) -> list[str]:
+    """How the pairs' rotation errors follow the change of the true angular velocity
+    (:func:`covo_gtsam.reference_noise.twist_change_response`), covo's and OpenCV's, per half of
+    fr1_rpy and on fr1_desk; then covo's rotation RMS with a multiple of a change taken off, the
+    multiple fitted on the other half: the true change from the pair before, and the changes a
+    run can estimate from its own twists (the previous one, this pair's own, the central one)."""
+    lines = ["## The rotation errors against the change of the angular velocity", "",
+             "The consecutive pairs' rotation errors fitted (generalized least squares, "
+             "`covo_gtsam.reference_noise.twist_change_response`, `twist_change_response` in `metrics.json`) as "
+             "`a (w_k - w_k-1) + c (w_k+1 - w_k) + s r_k`, `w` the pairs' true mean angular velocities, `r` their "
+             "true turns: images taken `L` before their stamps give `a + c = L` with `c` about `(dt - L) / (dt + L)` "
+             "of `a`; images each posed a share `b` of the way back along the frame interval before them give "
+             "`a = b dt`, `c = 0`; turns estimated `1 - s` times their size give `s` alone. covo's reported pairs "
+             "with their covariances and the reference's jitter; OpenCV's dense RGB-D odometry (between the "
+             "captures, not moved to the stamps) with its own errors' mean square per axis as its covariance. `a` / "
+             "`c` in ms and `s` in % with standard errors, and covo's fit's reduced chi-square.", "",
+             "| pairs | covo: a / c (ms), s (%) | reduced chi-square | OpenCV: a / c (ms), s (%) |",
+             "|---|---|---|---|"]
+
+    def fmt(f: dict) -> str:
+        se = f["standard_error"]
+        return (f"{1e3 * f['backward_s']:+.1f} ± {1e3 * se[0]:.1f} / {1e3 * f['forward_s']:+.1f} ± {1e3 * se[1]:.1f}, "
+                f"{1e2 * f['rotation_scale']:+.1f} ± {1e2 * se[2]:.1f}")
+
+    rpy = None
+    for name, ranges in SEGMENTS:
+        seq = TumSequence(data / "tum" / name)
+        p, covs = reported_pairs(seq, every_nth(seq, OdometryConfig(), 1))
+        theirs = opencv_pairs(seq, ground_truth_lookup(seq))
+        has = np.isin(p["end"], list(theirs))
+        T_cv = np.array([theirs[k] if k in theirs else np.eye(4) for k in p["end"]])
+        e = relative_pose_tangent_errors(T_cv[has], p["T_true"][has])[:, :3]
+        cv_covs = np.zeros_like(covs)
+        cv_covs[:, :3, :3] = np.diag(np.mean(e**2, axis=0))
+        for label, lo, hi in (ranges if name == DESK else (*ranges, ("fr1_rpy, all", 1, 239))):
+            m = (p["end"] >= lo) & (p["end"] <= hi)
+            ours = twist_change_response(p["T_est"][m], p["T_true"][m], covs[m], p["t_ref"][m], p["t_cur"][m])
+            m &= has
+            other = twist_change_response(T_cv[m], p["T_true"][m], cv_covs[m], p["t_ref"][m], p["t_cur"][m])
+            lines.append(f"| {label} ({ours['pairs']}) | {fmt(ours)} | {ours['reduced_chi2']:.2f} | {fmt(other)} |")
+        if name == RPY:
+            rpy = p
+    p = rpy
+    k = _linked(p)
+    dt = (p["t_cur"] - p["t_ref"])[:, None]
+    w_true, w_est = se3_log(p["T_true"])[:, :3] / dt, se3_log(p["T_est"])[:, :3] / dt
+    e = relative_pose_tangent_errors(p["T_est"], p["T_true"])[k, :3]
+    changes = {"the true change from the pair before (not known to a run)": w_true[k] - w_true[k - 1],
+               "the previous change, w_k-1 - w_k-2 (estimated; known when the pair is solved)":
+                   w_est[k - 1] - w_est[k - 2],
+               "this pair's own change, w_k - w_k-1 (estimated; carries the pair's own error)": w_est[k] - w_est[k - 1],
+               "the central change, (w_k+1 - w_k-1) / 2 (estimated; known one frame later)":
+                   0.5 * (w_est[k + 1] - w_est[k - 1])}
+    halves = {"A": p["end"][k] <= 119, "B": p["end"][k] >= 120}
+
+    def rms(x: np.ndarray) -> str:
+        return f"{np.degrees(np.sqrt(np.mean(np.sum(x**2, axis=1)))):.3f}"
+
+    lines += ["", "covo's rotation RMS per pair (deg) on fr1_rpy's consecutive pairs with a pair before and after, "
+              "as it is and with `g` times a change of the angular velocity taken off, `g` (ms) the least-squares "
+              "fit on the other half (held out). Only a change a run knows could correct it or size its "
+              "covariance.", "",
+              "| change taken off | A: g fitted on B, RMS | B: g fitted on A, RMS |", "|---|---|---|",
+              f"| none | {rms(e[halves['A']])} | {rms(e[halves['B']])} |"]
+    for label, x in changes.items():
+        cells = []
+        for on, off in (("A", "B"), ("B", "A")):
+            g = np.sum(e[halves[off]] * x[halves[off]]) / np.sum(x[halves[off]] ** 2)
+            cells.append(f"{1e3 * g:+.1f} ms, {rms(e[halves[on]] - g * x[halves[on]])}")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
 def chain_translation_rms(T_est: np.ndarray, T_true: np.ndarray, w: int) -> float:
     """Translation RMS (m) of the chains of ``w`` consecutive pairs against the truth's."""
     est, _ = compose_chains(T_est, np.zeros((len(T_est), 6, 6)), w)
@@ -1000,7 +1081,8 @@ def main() -> None:
               + whole_sequence_table(args.data)
               + speed_term_table(args.data)
               + closure_table(args.data) + persistence_table(args.data) + drift_table(args.data)
-              + reference_table(args.data) + axes_table(args.data) + independent_table(args.data))
+              + reference_table(args.data) + axes_table(args.data) + twist_change_table(args.data)
+              + independent_table(args.data))
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
