@@ -344,3 +344,24 @@ def test_a_reference_turned_against_the_camera_shows_in_reference_axes():
     about_x[:, :3, :3] = about_x[:, :3, :3] @ gtsam.Rot3.Ry(1e-3).matrix()
     weak = reference_axes(steps, turned, T_est, about_x, covs)
     assert weak["standard_error_deg"][0] > AXES_OBSERVED_DEG and weak["chains_anees_rotation"] is None
+
+
+def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
+    """docs/metrics.md documents each key of metrics.json, and each key of its nested statistics."""
+    import re
+    from pathlib import Path
+
+    documented = set(re.findall(r"`([a-z_0-9]+)`", (Path(__file__).resolve().parent.parent / "docs" / "metrics.md")
+                                .read_text()))
+    written = json.loads((sample_run.out_dir / "metrics.json").read_text())
+    keys = set(written)
+    for name in ("rpe_1", "ate", "chains", "nees_breakdown", "reference_jitter", "reference_axes",
+                 "twist_change_response", "self_calibration"):
+        assert isinstance(written[name], dict), name  # the sample run has them all
+        keys |= set(written[name])
+    from covo_gtsam.nees_breakdown import window_statistics
+
+    windows = window_statistics(np.full(120, 3.0), np.full(120, 3.0))  # the sample run is too short for one
+    keys |= set(windows) | set(windows["anees_rotation"]) | set(written["nees_breakdown"]["tails_rotation"])
+    keys |= set(written["nees_breakdown"]["by_angular_speed_rad_s"][0])
+    assert sorted(keys - documented) == []
