@@ -206,6 +206,9 @@ class RunEvaluation:
     axes: dict | None = None
     #: how the pairs' rotation errors follow the change of the angular velocity (:func:`twist_change`)
     twist_change: dict | None = None
+    #: per pair of that fit: the change of the true angular velocity from the pair before (rad/s)
+    #: and the rotation error along it (rad), (n, 2)
+    twist_change_points: np.ndarray = field(default_factory=lambda: np.empty((0, 2)), repr=False)
     #: whether the NEES values take the ground truth's own jitter into account (its samples were at hand)
     nees_with_reference_jitter: bool = False
     #: :func:`consistency_statistics` of the pairs under the reported covariances alone, without the
@@ -370,20 +373,25 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
     ev.breakdown = _computed(ev.not_computed, "nees_breakdown", breakdown, no_pairs)
     ev.axes = _computed(ev.not_computed, "reference_axes",
                         partial(reference_axes, steps, gt, T_est, T_true, covs, jitter), no_pairs)
-    ev.twist_change = _computed(ev.not_computed, "twist_change_response",
-                                partial(twist_change, T_est, T_true, covs, ref_stamps, cur_stamps), no_pairs)
+    def response():
+        fit = twist_change_response(T_est, T_true, covs, ref_stamps, cur_stamps)
+        size = np.linalg.norm(fit["changes"], axis=1)
+        along = np.einsum("ni,ni->n", fit["errors"], fit["changes"]) / np.where(size > 0, size, 1.0)
+        ev.twist_change_points = np.stack([size, along], axis=1)
+        return twist_change_statistics(fit)
+
+    ev.twist_change = _computed(ev.not_computed, "twist_change_response", response, no_pairs)
     return ev
 
 
-def twist_change(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray, ref_stamps: np.ndarray,
-                 cur_stamps: np.ndarray) -> dict:
-    """``metrics.json``'s ``twist_change_response``: how the pairs' rotation errors follow the change
-    of the true angular velocity from the pair before (``backward_ms``) and to the pair after
-    (``forward_ms``), in milliseconds, and the share of each turn the estimates miss
-    (``rotation_scale``), with standard errors and the fit's reduced chi-square
-    (:func:`~covo_gtsam.reference_noise.twist_change_response`; ``covs`` with the reference's
-    jitter). A check of the timing between the images and the reference, not a correction."""
-    fit = twist_change_response(T_est, T_true, covs, ref_stamps, cur_stamps)
+def twist_change_statistics(fit: dict) -> dict:
+    """``metrics.json``'s ``twist_change_response`` of a
+    :func:`~covo_gtsam.reference_noise.twist_change_response` fit (the pairs with their covariances
+    and the reference's jitter): how the pairs' rotation errors follow the change of the true
+    angular velocity from the pair before (``backward_ms``) and to the pair after (``forward_ms``),
+    in milliseconds, and the share of each turn the estimates miss (``rotation_scale``), with
+    standard errors and the fit's reduced chi-square. A check of the timing between the images and
+    the reference, not a correction."""
     se = fit["standard_error"]
     return {"backward_ms": 1e3 * fit["backward_s"], "forward_ms": 1e3 * fit["forward_s"],
             "standard_error_ms": (1e3 * se[:2]).tolist(), "rotation_scale": fit["rotation_scale"],

@@ -110,6 +110,23 @@ def anees_bars(ax, bins: list[dict], title: str, unit: str, dof: int = 3) -> Non
     ax.grid(True, axis="y", alpha=0.3)
 
 
+def twist_change_scatter(ax, points: np.ndarray, response: dict) -> None:
+    """Each pair's rotation error along the change of the true angular velocity from the pair
+    before against that change's size (``points`` (n, 2): rad/s, rad), with the fitted response
+    ``backward_ms`` (``metrics.json``'s ``twist_change_response``) as a line."""
+    size, along = points[:, 0], np.rad2deg(points[:, 1])
+    ax.plot(size, along, ".", ms=3, alpha=0.6, color="tab:blue", label="frame pairs")
+    x = np.array([0.0, float(size.max()) if size.size else 1.0])
+    a, se = response["backward_ms"], response["standard_error_ms"][0]
+    ax.plot(x, np.rad2deg(1e-3 * a * x), "r-", lw=1.2, label=f"fit: {a:.1f} $\\pm$ {se:.1f} ms $\\times$ change")
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_xlabel("change of the true angular velocity from the pair before [rad/s]")
+    ax.set_ylabel("rotation error along that change [deg]")
+    ax.set_title("rotation error against the change of the turn")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+
+
 def plot_run(steps: Sequence, evaluation, out_dir: Path) -> list[Path] | None:
     """Trajectory with 3-sigma ellipses, NEES histograms and RPE box plots of a run.
 
@@ -160,11 +177,14 @@ def plot_run(steps: Sequence, evaluation, out_dir: Path) -> list[Path] | None:
         written.append(save_figure(fig, out_dir / "nees.png"))
 
     if evaluation.breakdown is not None:
-        fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+        response = evaluation.twist_change
+        fig, axes = plt.subplots(1, 3 if response else 2, figsize=(18 if response else 12, 4.2))
         bd = evaluation.breakdown
         anees_bars(axes[0], bd["by_angular_speed_rad_s"], "ANEES by the true angular speed", "rad/s")
         anees_bars(axes[1], bd["by_angular_acceleration_rad_s2"], "ANEES by the true angular acceleration",
                    "rad/s$^2$")
+        if response:
+            twist_change_scatter(axes[2], evaluation.twist_change_points, response)
         fig.suptitle(f"where the covariance holds, {evaluation.sequence}")
         written.append(save_figure(fig, out_dir / "nees_motion.png"))
 

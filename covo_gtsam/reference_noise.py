@@ -160,7 +160,8 @@ def _rotation_gls(e: np.ndarray, J: np.ndarray, covs: np.ndarray, unobserved: st
 def twist_change_response(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray, ref_stamps: np.ndarray,
                           cur_stamps: np.ndarray) -> dict:
     """How the pairs' rotation errors follow the change of the camera's angular velocity:
-    ``{"backward_s", "forward_s", "rotation_scale", "standard_error": (3,), "reduced_chi2", "pairs"}``.
+    ``{"backward_s", "forward_s", "rotation_scale", "standard_error": (3,), "reduced_chi2", "pairs",
+    "changes", "errors"}``.
 
     ``w_k`` is pair ``k``'s true mean angular velocity (the rotation vector ``r_k`` of ``T_true``
     over its stamps' interval, rad/s). For each pair linked to a pair before it (ending at its
@@ -169,7 +170,8 @@ def twist_change_response(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarra
     ``a (w_k - w_{k-1}) + c (w_{k+1} - w_k) + s r_k`` by generalized least squares under the rotation
     blocks of ``covs`` (N, 6, 6); ``a`` is ``"backward_s"``, ``c`` ``"forward_s"`` (seconds) and ``s``
     ``"rotation_scale"`` (the share of each turn the estimates miss), standard errors (s, s, 1) as
-    :func:`axes_rotation`'s. Images taken ``L`` seconds before their stamps (a common delay) give
+    :func:`axes_rotation`'s; ``"changes"`` (n, 3) are the fitted pairs' changes from the pair before
+    (rad/s) and ``"errors"`` (n, 3) their rotation errors (rad), for figures. Images taken ``L`` seconds before their stamps (a common delay) give
     ``a + c = L`` with ``c`` somewhat smaller than ``a`` (the change is centred ``L / 2`` before the
     pair's middle); images each posed a share ``b`` of the way back along the interval ``dt`` before
     their own frame (a blend of each pair's motion into the next) give ``a = b dt`` and ``c = 0``;
@@ -197,7 +199,8 @@ def twist_change_response(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarra
     J = np.stack([w[k] - w[k - 1], w[k + 1] - w[k], r[k]], axis=2)
     x, se, reduced = _rotation_gls(e, J, covs[k], "the angular velocity changes too little, or about one axis only")
     return {"backward_s": float(x[0]), "forward_s": float(x[1]), "rotation_scale": float(x[2]),
-            "standard_error": se, "reduced_chi2": reduced, "pairs": int(len(k))}
+            "standard_error": se, "reduced_chi2": reduced, "pairs": int(len(k)),
+            "changes": J[:, :, 0], "errors": e}
 
 
 def axes_transform(d: np.ndarray) -> np.ndarray:

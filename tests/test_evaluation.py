@@ -65,6 +65,9 @@ def test_statistics_summarise_the_arrays_kept(sample_run):
     assert bd["tails_translation"]["largest"] == ev.nees_translation.max() and bd["windows"] is None
     assert ev.tracked_frames + ev.lost_frames == ev.frames == 35
     assert set(ev.ground_truth) >= {s.timestamp for s in sample_run.steps if s.tracked}
+    # the figure's points are the pairs of the twist-change fit (a pair before and after: 34 - 2)
+    assert ev.twist_change["pairs"] == len(ev.twist_change_points) == 32
+    assert np.all(ev.twist_change_points[:, 0] >= 0)
 
 
 def test_the_reference_jitter_is_that_of_all_its_samples(sample_run):
@@ -156,7 +159,7 @@ def test_figures_read_the_result_object_not_a_second_computation(sample_run, tmp
     for module in (evaluation, metrics):
         for name in ("relative_pose_nees", "relative_pose_errors", "ate_errors", "segment_rpe_errors",
                      "relative_ground_truth", "tracked_segments", "ground_truth_lookup", "chain_nees",
-                     "compose_chains"):
+                     "compose_chains", "twist_change_response"):
             if hasattr(module, name):
                 monkeypatch.setattr(module, name, fail)
     written = plot_run(sample_run.steps, sample_run.evaluation, tmp_path)

@@ -294,12 +294,11 @@ def test_twist_change_response_needs_linked_pairs_and_changes():
 
 
 def test_metrics_json_reports_the_twist_change_response_in_milliseconds():
-    from covo_gtsam.evaluation import twist_change
+    from covo_gtsam.evaluation import twist_change_statistics
 
     pose, t = turning_camera()
-    T_true = pairs_of([pose(s) for s in t])
-    covs = np.tile(np.eye(6) * np.deg2rad(0.1) ** 2, (len(T_true), 1, 1))
-    out = twist_change(pairs_of([pose(s - 0.010) for s in t]), T_true, covs, t[:-1], t[1:])
+    delayed, true = pairs_of([pose(s - 0.010) for s in t]), pairs_of([pose(s) for s in t])
+    out = twist_change_statistics(change_response(delayed, true, t))
     assert out["backward_ms"] + out["forward_ms"] == pytest.approx(10.0, rel=0.03)
     assert out["pairs"] == len(t) - 3 and len(out["standard_error_ms"]) == 2
     assert all(isinstance(v, float) for v in [*out["standard_error_ms"], out["rotation_scale_standard_error"]])
