@@ -204,10 +204,10 @@ class RunEvaluation:
     reference: dict | None = None
     #: the fixed rotation between the reference's axes and the estimates' (:func:`reference_axes`)
     axes: dict | None = None
-    #: how the pairs' rotation errors follow the change of the angular velocity (:func:`twist_change`)
+    #: how the pairs' rotation errors follow the change of the angular velocity (:func:`twist_change_statistics`)
     twist_change: dict | None = None
-    #: per pair of that fit: the change of the true angular velocity from the pair before (rad/s)
-    #: and the rotation error along it (rad), (n, 2)
+    #: per pair of that fit: the change of the true angular velocity across it (rad/s) and the
+    #: rotation error along it (rad), (n, 2)
     twist_change_points: np.ndarray = field(default_factory=lambda: np.empty((0, 2)), repr=False)
     #: whether the NEES values take the ground truth's own jitter into account (its samples were at hand)
     nees_with_reference_jitter: bool = False
@@ -387,13 +387,15 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 def twist_change_statistics(fit: dict) -> dict:
     """``metrics.json``'s ``twist_change_response`` of a
     :func:`~covo_gtsam.reference_noise.twist_change_response` fit (the pairs with their covariances
-    and the reference's jitter): how the pairs' rotation errors follow the change of the true
-    angular velocity from the pair before (``backward_ms``) and to the pair after (``forward_ms``),
-    in milliseconds, and the share of each turn the estimates miss (``rotation_scale``), with
-    standard errors and the fit's reduced chi-square. A check of the timing between the images and
-    the reference, not a correction."""
+    and the reference's jitter): the delay of the images against the reference that the pairs'
+    rotation errors show (``delay_ms``, the sum of the responses to the change of the true angular
+    velocity from the pair before, ``backward_ms``, and to the pair after, ``forward_ms``), and the
+    share of each turn the estimates miss (``rotation_scale``), with standard errors and the fit's
+    reduced chi-square. A check of the timing between the images and the reference, not a
+    correction."""
     se = fit["standard_error"]
-    return {"backward_ms": 1e3 * fit["backward_s"], "forward_ms": 1e3 * fit["forward_s"],
+    return {"delay_ms": 1e3 * fit["delay_s"], "delay_standard_error_ms": 1e3 * fit["delay_standard_error_s"],
+            "backward_ms": 1e3 * fit["backward_s"], "forward_ms": 1e3 * fit["forward_s"],
             "standard_error_ms": (1e3 * se[:2]).tolist(), "rotation_scale": fit["rotation_scale"],
             "rotation_scale_standard_error": float(se[2]), "reduced_chi2": fit["reduced_chi2"], "pairs": fit["pairs"]}
 

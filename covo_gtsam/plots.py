@@ -111,16 +111,17 @@ def anees_bars(ax, bins: list[dict], title: str, unit: str, dof: int = 3) -> Non
 
 
 def twist_change_scatter(ax, points: np.ndarray, response: dict) -> None:
-    """Each pair's rotation error along the change of the true angular velocity from the pair
-    before against that change's size (``points`` (n, 2): rad/s, rad), with the fitted response
-    ``backward_ms`` (``metrics.json``'s ``twist_change_response``) as a line."""
+    """Each pair's rotation error along the change of the true angular velocity across it against
+    that change's size (``points`` (n, 2): rad/s, rad), with the delay the fit gives
+    (``metrics.json``'s ``twist_change_response``) as a line."""
     size, along = points[:, 0], np.rad2deg(points[:, 1])
     ax.plot(size, along, ".", ms=3, alpha=0.6, color="tab:blue", label="frame pairs")
     x = np.array([0.0, float(size.max()) if size.size else 1.0])
-    a, se = response["backward_ms"], response["standard_error_ms"][0]
-    ax.plot(x, np.rad2deg(1e-3 * a * x), "r-", lw=1.2, label=f"fit: {a:.1f} $\\pm$ {se:.1f} ms $\\times$ change")
+    delay, se = response["delay_ms"], response["delay_standard_error_ms"]
+    ax.plot(x, np.rad2deg(1e-3 * delay * x), "r-", lw=1.2,
+            label=f"delay {delay:.1f} $\\pm$ {se:.1f} ms $\\times$ change")
     ax.axhline(0.0, color="k", lw=0.6)
-    ax.set_xlabel("change of the true angular velocity from the pair before [rad/s]")
+    ax.set_xlabel("change of the true angular velocity across the pair [rad/s]")
     ax.set_ylabel("rotation error along that change [deg]")
     ax.set_title("rotation error against the change of the turn")
     ax.grid(True, alpha=0.3)

@@ -132,17 +132,19 @@ def axes_rotation(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray) -> di
         raise InputError(f"need two or more pairs with covariances (N, 6, 6), got {covs.shape} for {T_est.shape[0]}")
     e = relative_pose_tangent_errors(T_est, T_true)[:, :3]
     J = T_true[:, :3, :3].transpose(0, 2, 1) - np.eye(3)
-    d, se, reduced = _rotation_gls(e, J, covs, "the pairs turn about one axis only: the rotation about it is not "
-                                   "observed")
-    return {"rotation_rad": d, "standard_error_rad": se, "reduced_chi2": reduced, "pairs": int(T_est.shape[0])}
+    d, C, reduced = _rotation_gls(e, J, covs, "the pairs turn about one axis only: the rotation about it is not "
+                                  "observed")
+    return {"rotation_rad": d, "standard_error_rad": np.sqrt(np.diag(C)), "reduced_chi2": reduced,
+            "pairs": int(T_est.shape[0])}
 
 
 def _rotation_gls(e: np.ndarray, J: np.ndarray, covs: np.ndarray, unobserved: str
                   ) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(x, standard errors, reduced chi-square)`` of the generalized least-squares fit of the
+    """``(x, its covariance, reduced chi-square)`` of the generalized least-squares fit of the
     rotation errors ``e`` (N, 3) by ``J x`` (``J`` (N, 3, P)) under the rotation blocks of ``covs``
-    (N, 6, 6); the standard errors scaled up by ``sqrt`` of the reduced chi-square where it
-    exceeds 1, never down. :class:`InputError` (``unobserved``) for an ill-conditioned fit."""
+    (N, 6, 6); the covariance scaled up by the reduced chi-square where that exceeds 1, never
+    down. :class:`InputError` (``unobserved``) for an ill-conditioned fit (its condition number
+    taken as it is: the callers' parameters and regressors have sizes that keep it meaningful)."""
     W = np.linalg.inv(covs[:, :3, :3])
     H = np.einsum("nki,nkl,nlj->ij", J, W, J)
     g = np.einsum("nki,nkl,nl->i", J, W, e)
@@ -154,30 +156,33 @@ def _rotation_gls(e: np.ndarray, J: np.ndarray, covs: np.ndarray, unobserved: st
     x = H_inv @ g
     r = e - np.einsum("nij,j->ni", J, x)
     reduced = float(np.einsum("ni,nij,nj->", r, W, r) / (e.size - x.size))
-    return x, np.sqrt(np.diag(H_inv) * max(1.0, reduced)), reduced
+    return x, H_inv * max(1.0, reduced), reduced
 
 
 def twist_change_response(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarray, ref_stamps: np.ndarray,
                           cur_stamps: np.ndarray) -> dict:
     """How the pairs' rotation errors follow the change of the camera's angular velocity:
-    ``{"backward_s", "forward_s", "rotation_scale", "standard_error": (3,), "reduced_chi2", "pairs",
-    "changes", "errors"}``.
+    ``{"backward_s", "forward_s", "rotation_scale", "standard_error": (3,), "delay_s",
+    "delay_standard_error_s", "reduced_chi2", "pairs", "changes", "errors"}``.
 
-    ``w_k`` is pair ``k``'s true mean angular velocity (the rotation vector ``r_k`` of ``T_true``
-    over its stamps' interval, rad/s). For each pair linked to a pair before it (ending at its
-    reference frame) and after it (starting at its frame), the rotation error
-    (``Log(R_est^T R_true)``, rad, as :func:`axes_rotation`'s) is fitted as
-    ``a (w_k - w_{k-1}) + c (w_{k+1} - w_k) + s r_k`` by generalized least squares under the rotation
-    blocks of ``covs`` (N, 6, 6); ``a`` is ``"backward_s"``, ``c`` ``"forward_s"`` (seconds) and ``s``
-    ``"rotation_scale"`` (the share of each turn the estimates miss), standard errors (s, s, 1) as
-    :func:`axes_rotation`'s; ``"changes"`` (n, 3) are the fitted pairs' changes from the pair before
-    (rad/s) and ``"errors"`` (n, 3) their rotation errors (rad), for figures. Images taken ``L`` seconds before their stamps (a common delay) give
-    ``a + c = L`` with ``c`` somewhat smaller than ``a`` (the change is centred ``L / 2`` before the
-    pair's middle); images each posed a share ``b`` of the way back along the interval ``dt`` before
-    their own frame (a blend of each pair's motion into the next) give ``a = b dt`` and ``c = 0``;
-    turns estimated ``1 - s`` times their size (a focal length's error, an estimator's shrinkage)
-    give ``s`` alone, which without its own term would read as ``a = -c``. The reference's own
-    jitter enters both the errors and the changes and biases ``a`` up and ``c`` down.
+    ``w_k`` is pair ``k``'s true mean angular velocity (the rotation vector ``r_k`` of its
+    ``T_true`` over its stamps' interval, rad/s). For each pair linked to a pair before it (ending
+    at its reference frame) and after it (starting at its frame), the rotation error
+    (``Log(R_est^T R_true)``, rad, about the pair's current frame's axes, as
+    :func:`axes_rotation`'s) is fitted as ``a (w_k - R_k^T w_{k-1}) + c (w_{k+1} - w_k) + s r_k``
+    (``R_k`` the pair's true rotation: every vector in the current frame) by generalized least
+    squares under the rotation blocks of ``covs`` (N, 6, 6): ``a`` is ``"backward_s"``, ``c``
+    ``"forward_s"`` (seconds), ``s`` ``"rotation_scale"`` (the share of each turn the estimates
+    miss), standard errors (s, s, 1) as :func:`axes_rotation`'s.
+
+    Images taken ``L`` seconds before their stamps (a delay against the reference) give ``a + c =
+    L`` (``"delay_s"``, with its standard error), ``c`` about ``(dt - L) / (dt + L)`` of ``a``;
+    turns estimated ``1 - s`` times their size give ``s`` alone (without its own term they would
+    read as ``a = -c``). How ``a`` and ``c`` split is less sure than their sum: the reference's own
+    jitter enters both the errors and the changes, raising ``a`` and lowering ``c`` by as much, and
+    the split also depends on how rough the true motion is between the frames. ``"changes"``
+    (n, 3) are the fitted pairs' changes of the angular velocity across them, ``(w_{k+1} - R_k^T
+    w_{k-1}) / 2`` (rad/s), and ``"errors"`` (n, 3) their rotation errors (rad), for figures.
     :class:`InputError` with fewer than three linked pairs or changes about one axis only."""
     T_est, T_true = np.asarray(T_est, dtype=float), np.asarray(T_true, dtype=float)
     covs = np.asarray(covs, dtype=float)
@@ -195,12 +200,14 @@ def twist_change_response(T_est: np.ndarray, T_true: np.ndarray, covs: np.ndarra
         raise InputError(f"need three or more pairs linked to a pair before and after them, got {len(k)}")
     r = se3_log(T_true)[:, :3]
     w = r / np.where(dt > 0, dt, 1.0)[:, None]
+    before = np.einsum("nji,nj->ni", T_true[k, :3, :3], w[k - 1])  # R_k^T w_{k-1}: into the current frame
     e = relative_pose_tangent_errors(T_est[k], T_true[k])[:, :3]
-    J = np.stack([w[k] - w[k - 1], w[k + 1] - w[k], r[k]], axis=2)
-    x, se, reduced = _rotation_gls(e, J, covs[k], "the angular velocity changes too little, or about one axis only")
+    J = np.stack([w[k] - before, w[k + 1] - w[k], r[k]], axis=2)
+    x, C, reduced = _rotation_gls(e, J, covs[k], "the angular velocity changes too little, or about one axis only")
     return {"backward_s": float(x[0]), "forward_s": float(x[1]), "rotation_scale": float(x[2]),
-            "standard_error": se, "reduced_chi2": reduced, "pairs": int(len(k)),
-            "changes": J[:, :, 0], "errors": e}
+            "standard_error": np.sqrt(np.diag(C)), "delay_s": float(x[0] + x[1]),
+            "delay_standard_error_s": float(np.sqrt(C[0, 0] + C[1, 1] + 2.0 * C[0, 1])),
+            "reduced_chi2": reduced, "pairs": int(len(k)), "changes": 0.5 * (w[k + 1] - before), "errors": e}
 
 
 def axes_transform(d: np.ndarray) -> np.ndarray:

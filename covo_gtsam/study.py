@@ -37,7 +37,7 @@ __all__ = ["COLUMNS", "evaluate_sequences", "run_one", "summary_row"]
 
 COLUMNS = ("sequence", "frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r",
            "above_9.35_t", "above_9.35_r", "chain_anees_t", "chain_anees_r", "chain_anees_r_axes_turned_back",
-           "twist_change_backward_ms", "worst_60_t", "worst_60_r", "frames_per_s")
+           "twist_change_delay_ms", "worst_60_t", "worst_60_r", "frames_per_s")
 
 
 def _get(m: dict, *keys):
@@ -66,7 +66,7 @@ def summary_row(name: str, metrics: dict) -> dict:
         "chain_anees_t": _get(metrics, "chains", "anees_translation"),
         "chain_anees_r": _get(metrics, "chains", "anees_rotation"),
         "chain_anees_r_axes_turned_back": _get(metrics, "reference_axes", "chains_anees_rotation"),
-        "twist_change_backward_ms": _get(metrics, "twist_change_response", "backward_ms"),
+        "twist_change_delay_ms": _get(metrics, "twist_change_response", "delay_ms"),
         "worst_60_t": _get(metrics, "nees_breakdown", "windows", "anees_translation", "highest"),
         "worst_60_r": _get(metrics, "nees_breakdown", "windows", "anees_rotation", "highest"),
         "frames_per_s": metrics.get("frames_per_second"),

@@ -185,8 +185,8 @@ def test_summary_row_takes_the_worst_window_from_the_breakdown():
     axes = {"rotation_vector_deg": [-1.4, -0.5, 0.1], "standard_error_deg": [0.3] * 3, "chains_anees_rotation": 1.8}
     assert summary_row("s", {"reference_axes": axes})["chain_anees_r_axes_turned_back"] == 1.8
     assert summary_row("s", {"reference_axes": None})["chain_anees_r_axes_turned_back"] is None
-    assert summary_row("s", {"twist_change_response": {"backward_ms": 10.5}})["twist_change_backward_ms"] == 10.5
-    assert summary_row("s", {"twist_change_response": None})["twist_change_backward_ms"] is None
+    assert summary_row("s", {"twist_change_response": {"delay_ms": 9.0}})["twist_change_delay_ms"] == 9.0
+    assert summary_row("s", {"twist_change_response": None})["twist_change_delay_ms"] is None
 
 
 def test_evaluate_into_a_folder_used_before_names_the_earlier_sequences_left(small_sample, tmp_path, capsys):
