@@ -368,3 +368,8 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
     keys |= set(windows) | set(windows["anees_rotation"]) | set(written["nees_breakdown"]["tails_rotation"])
     keys |= set(written["nees_breakdown"]["by_angular_speed_rad_s"][0])
     assert sorted(keys - documented) == []
+    # and the other way round: every key the page's tables list is written
+    listed = {name for row in re.findall(r"^\| (`[^|]+) \|", (Path(__file__).resolve().parent.parent / "docs" /
+                                                              "metrics.md").read_text(), flags=re.M)
+              for name in re.findall(r"`([a-z_0-9]+)`", row)}
+    assert listed and sorted(listed - set(written) - set(written["self_calibration"])) == []
