@@ -170,8 +170,8 @@ class RunEvaluation:
     in (``has_ground_truth`` False; :meth:`to_dict` writes the other statistics null). With it, a
     statistic that cannot be computed is None and ``not_computed[name]`` says why
     (``"rpe_<delta>"``, ``"ate"``, ``"anees"``, ``"chains"``, ``"nees_breakdown"``,
-    ``"reference_jitter"``, ``"reference_axes"``, ``"twist_change_response"``); its array, if it has one, is then empty, or
-    holds the values that made it fail (not finite).
+    ``"reference_jitter"``, ``"reference_axes"``, ``"twist_change_response"``); its array, if it
+    has one, is then empty, or holds the values that made it fail (not finite).
     """
 
     sequence: str
@@ -249,9 +249,9 @@ class RunEvaluation:
         """The ``metrics.json`` dictionary (a copy): the counts and timing, then ``not_computed``,
         ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`, ``chains``,
         ``nees_breakdown``, ``reference_jitter``, ``reference_axes``, ``twist_change_response``,
-        ``nees_with_reference_jitter`` and
-        ``without_reference_jitter`` (without ground truth null, each with that reason under
-        ``not_computed``), then ``self_calibration`` and ``version`` when they are set."""
+        ``nees_with_reference_jitter`` and ``without_reference_jitter`` (without ground truth null,
+        each with that reason under ``not_computed``), then ``self_calibration`` and ``version`` when
+        they are set (docs/metrics.md)."""
         out: dict = {
             "sequence": self.sequence,
             "frames": self.frames,
@@ -373,7 +373,8 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
     ev.breakdown = _computed(ev.not_computed, "nees_breakdown", breakdown, no_pairs)
     ev.axes = _computed(ev.not_computed, "reference_axes",
                         partial(reference_axes, steps, gt, T_est, T_true, covs, jitter), no_pairs)
-    def response():
+
+    def response():  # the statistics, and the points of the figure's panel
         fit = twist_change_response(T_est, T_true, covs, ref_stamps, cur_stamps)
         size = np.linalg.norm(fit["changes"], axis=1)
         along = np.einsum("ni,ni->n", fit["errors"], fit["changes"]) / np.where(size > 0, size, 1.0)

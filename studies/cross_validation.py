@@ -862,11 +862,12 @@ def _linked(p: dict) -> np.ndarray:
 
 
 def twist_change_table(data: Path) -> list[str]:
-    """How the pairs' rotation errors follow the change of the true angular velocity
+    """The delay of the images against the reference that the pairs' rotation errors show
     (:func:`covo_gtsam.reference_noise.twist_change_response`), covo's and OpenCV's, per half of
-    fr1_rpy and on fr1_desk; then covo's rotation RMS with a multiple of a change taken off, the
-    multiple fitted on the other half: the true change from the pair before, and the changes a
-    run can estimate from its own twists (the previous one, this pair's own, the central one)."""
+    fr1_rpy and on fr1_desk; then covo's rotation RMS with a multiple of a change of the angular
+    velocity taken off, the multiple fitted on the other half: the true change across the pair,
+    and the changes a run can estimate from its own twists (the previous one, this pair's own, the
+    one across the pair, known one frame later)."""
     lines = ["## The rotation errors against the change of the angular velocity", "",
              "The consecutive pairs' rotation errors fitted (generalized least squares, "
              "`covo_gtsam.reference_noise.twist_change_response`, `twist_change_response` in `metrics.json`) as "
