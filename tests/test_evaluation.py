@@ -354,8 +354,8 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
     import re
     from pathlib import Path
 
-    documented = set(re.findall(r"`([a-z_0-9]+)`", (Path(__file__).resolve().parent.parent / "docs" / "metrics.md")
-                                .read_text()))
+    page = (Path(__file__).resolve().parent.parent / "docs" / "metrics.md").read_text()
+    documented = set(re.findall(r"`([a-z_0-9]+)`", page))
     written = json.loads((sample_run.out_dir / "metrics.json").read_text())
     keys = set(written)
     for name in ("rpe_1", "ate", "chains", "nees_breakdown", "reference_jitter", "reference_axes",
@@ -369,7 +369,6 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
     keys |= set(written["nees_breakdown"]["by_angular_speed_rad_s"][0])
     assert sorted(keys - documented) == []
     # and the other way round: every key the page's tables list is written
-    listed = {name for row in re.findall(r"^\| (`[^|]+) \|", (Path(__file__).resolve().parent.parent / "docs" /
-                                                              "metrics.md").read_text(), flags=re.M)
+    listed = {name for row in re.findall(r"^\| (`[^|]+) \|", page, flags=re.M)
               for name in re.findall(r"`([a-z_0-9]+)`", row)}
     assert listed and sorted(listed - set(written) - set(written["self_calibration"])) == []
