@@ -302,6 +302,9 @@ def test_twist_change_response_has_the_spread_of_a_monte_carlo():
     est = np.array([[f[k] for k in KEYS] for f in fits])
     se = np.array([f["standard_error"] for f in fits]).mean(axis=0)
     np.testing.assert_allclose(est.std(axis=0) / se, 1.0, atol=0.12)  # the ratio's own s.d. is about 0.04
+    # the delay a + c too: its standard error takes the correlation of a and c
+    delay_se = np.mean([f["delay_standard_error_s"] for f in fits])
+    assert np.std([f["delay_s"] for f in fits]) / delay_se == pytest.approx(1.0, abs=0.12)
     exact = change_response(blended, T_true, t, covs)  # without noise
     np.testing.assert_array_less(np.abs(est.mean(axis=0) - [exact[k] for k in KEYS]), 4 * se / np.sqrt(len(fits)))
     assert np.mean([f["reduced_chi2"] for f in fits]) == pytest.approx(1.0, rel=0.05)
