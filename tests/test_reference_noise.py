@@ -205,6 +205,15 @@ def pairs_of(frame_poses: list) -> np.ndarray:
     return np.linalg.inv(G[:-1]) @ G[1:]
 
 
+def blended_pairs(pose, t: np.ndarray, beta: float) -> np.ndarray:
+    """The pairs of images each posed a share ``beta`` of the way back along the frame interval
+    before it (along that interval's own motion, exactly), at the stamps ``t``."""
+    import gtsam
+
+    return pairs_of([pose(s) @ gtsam.Pose3.Expmap(-beta * gtsam.Pose3.Logmap(gtsam.Pose3(
+        np.linalg.inv(pose(s - FRAME_DT)) @ pose(s)))).matrix() for s in t])
+
+
 def change_response(T_est: np.ndarray, T_true: np.ndarray, stamps: np.ndarray, covs: np.ndarray | None = None):
     from covo_gtsam.reference_noise import twist_change_response
 
@@ -219,8 +228,6 @@ def test_twist_change_response_of_a_common_delay_and_of_a_blend_of_motions():
     change centred ``L / 2`` before the pair's middle); images each posed 0.3 of the way back along
     the interval before them respond to the change from the pair before alone, ``a = 0.3 dt``; turns
     estimated short show as the rotation scale alone."""
-    import gtsam
-
     pose, t = turning_camera()
     T_true = pairs_of([pose(s) for s in t])
     L = 0.010
@@ -230,9 +237,7 @@ def test_twist_change_response_of_a_common_delay_and_of_a_blend_of_motions():
     assert delayed["backward_s"] + delayed["forward_s"] == pytest.approx(delayed["delay_s"], rel=1e-12)
     assert delayed["forward_s"] / delayed["backward_s"] == pytest.approx((FRAME_DT - L) / (FRAME_DT + L), rel=0.01)
     beta = 0.3
-    blended = [pose(s) @ gtsam.Pose3.Expmap(-beta * gtsam.Pose3.Logmap(gtsam.Pose3(
-        np.linalg.inv(pose(s - FRAME_DT)) @ pose(s)))).matrix() for s in t]
-    blend = change_response(pairs_of(blended), T_true, t)
+    blend = change_response(blended_pairs(pose, t, beta), T_true, t)
     assert blend["backward_s"] == pytest.approx(beta * FRAME_DT, rel=0.005)
     assert abs(blend["forward_s"]) < 0.005 * beta * FRAME_DT
     assert abs(delayed["rotation_scale"]) < 1e-3 and abs(blend["rotation_scale"]) < 1e-3
@@ -280,12 +285,9 @@ def test_a_jittering_reference_biases_the_fit():
 def test_twist_change_response_has_the_spread_of_a_monte_carlo():
     """Rotation noise drawn from each pair's covariance (sizes spread over a factor of 10, axes
     correlated) on the blend above: the fits scatter by their standard errors."""
-    import gtsam
-
     pose, t = turning_camera(1)
     T_true = pairs_of([pose(s) for s in t])
-    blended = pairs_of([pose(s) @ gtsam.Pose3.Expmap(-0.3 * gtsam.Pose3.Logmap(gtsam.Pose3(
-        np.linalg.inv(pose(s - FRAME_DT)) @ pose(s)))).matrix() for s in t])
+    blended = blended_pairs(pose, t, 0.3)
     rng = np.random.default_rng(2)
     n = len(T_true)
     A = rng.normal(0.0, 1.0, (n, 3, 3)) * np.deg2rad(0.1 * 10 ** rng.uniform(-0.5, 0.5, n))[:, None, None]
