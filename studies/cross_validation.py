@@ -492,21 +492,20 @@ def whole_sequence_table(data: Path) -> list[str]:
              "when consistent).", "",
              "| pairs | mean angular speed (rad/s) | pairs above 2 rad/s | ANEES t / r expected from the "
              "acceleration | NEES above 9.35 t / r expected (%) |", "|---|---|---|---|---|"]
+
+    def row(label: str, a: np.ndarray, w: np.ndarray) -> str:
+        """The table's row of a stretch of pairs with true accelerations ``a`` and speeds ``w``: the
+        shared bins' ANEES and shares above 9.35, weighted by the stretch's pairs per bin."""
+        n = [b["pairs"] for b in by_bins(a, ACCELERATION_EDGES, np.zeros(len(a)), np.zeros(len(a)))]
+        et, er, st, sr = (sum(k * b[key] for k, b in zip(n, bins) if k) / max(sum(n), 1)
+                          for bins in (shared, above) for key in ("anees_translation", "anees_rotation"))
+        return (f"| {label} | {np.nanmean(w):.2f} | {int(np.sum(w > 2))} | {et:.2f} / {er:.2f} | "
+                f"{100 * st:.1f} / {100 * sr:.1f} |")
+
     for start in range(0, len(T) - 30, 60):
         a, w = acc[start:start + 60], speed[start:start + 60]
-        n = [b["pairs"] for b in by_bins(a, ACCELERATION_EDGES, np.zeros(len(a)), np.zeros(len(a)))]
-        et = sum(k * b["anees_translation"] for k, b in zip(n, shared) if k) / max(sum(n), 1)
-        er = sum(k * b["anees_rotation"] for k, b in zip(n, shared) if k) / max(sum(n), 1)
-        st = sum(k * b["anees_translation"] for k, b in zip(n, above) if k) / max(sum(n), 1)
-        sr = sum(k * b["anees_rotation"] for k, b in zip(n, above) if k) / max(sum(n), 1)
-        lines.append(f"| {start}-{start + len(w) - 1} | {np.nanmean(w):.2f} | {int(np.sum(w > 2))} | "
-                     f"{et:.2f} / {er:.2f} | {100 * st:.1f} / {100 * sr:.1f} |")
-    n = [b["pairs"] for b in by_bins(acc[240:], ACCELERATION_EDGES, np.zeros(len(acc) - 240), np.zeros(len(acc) - 240))]
-    cells = [sum(k * b[key] for k, b in zip(n, bins) if k) / max(sum(n), 1)
-             for bins in (shared, above) for key in ("anees_translation", "anees_rotation")]
-    lines.append(f"| 240 on (the frames not shared) | {np.nanmean(speed[240:]):.2f} | "
-                 f"{int(np.sum(speed[240:] > 2))} | {cells[0]:.2f} / {cells[1]:.2f} | "
-                 f"{100 * cells[2]:.1f} / {100 * cells[3]:.1f} |")
+        lines.append(row(f"{start}-{start + len(w) - 1}", a, w))
+    lines.append(row("240 on (the frames not shared)", acc[240:], speed[240:]))
     return lines + [""]
 
 
@@ -737,6 +736,20 @@ def reported_pairs(seq: TumSequence, steps: list) -> tuple[dict, np.ndarray]:
              "end": np.array([index[t] for t in t_cur])}, covs + ref)
 
 
+def opencv_reported(seq: TumSequence, p: dict) -> tuple[dict, np.ndarray]:
+    """OpenCV's dense odometry (:func:`opencv_pairs`) on those pairs of ``p`` (:func:`reported_pairs`)
+    it solved: ``p`` on them with OpenCV's poses as ``T_est``, and as its covariance its own errors'
+    mean square per axis (rotation and translation blocks, one for all its pairs of ``seq``)."""
+    theirs = opencv_pairs(seq, ground_truth_lookup(seq))
+    o = subset(p, np.isin(p["end"], list(theirs)))
+    o["T_est"] = np.array([theirs[k] for k in o["end"]])
+    e = relative_pose_tangent_errors(o["T_est"], o["T_true"])
+    covs = np.zeros((len(e), 6, 6))
+    covs[:, :3, :3] = np.diag(np.mean(e[:, :3] ** 2, axis=0))
+    covs[:, 3:, 3:] = np.diag(np.mean(e[:, 3:] ** 2, axis=0))
+    return o, covs
+
+
 #: the principal point's row of the fr1 colour camera (px): its calibration's, and 10 px either side
 PRINCIPAL_ROWS = (245.3, 255.3, 265.3)
 
@@ -794,14 +807,7 @@ def axes_table(data: Path) -> list[str]:
         cells = [chains_r(p, covs, lo, hi), chains_r(turned_back(p, fit["all"]["rotation_rad"]), covs, lo, hi)]
         lines.append(f"| {label} ({fit[label]['pairs']}) | {angles(fit[label])} | {rms} | {' / '.join(cells)} |")
     # an estimator of its own on the same pairs, its covariance its errors' mean square per axis
-    theirs = opencv_pairs(seq, ground_truth_lookup(seq))
-    ends = np.array([k for k in p["end"] if k in theirs])
-    o = {"T_est": np.array([theirs[k] for k in ends]), "T_true": p["T_true"][np.isin(p["end"], ends)], "end": ends}
-    e = relative_pose_tangent_errors(o["T_est"], o["T_true"])
-    o_covs = np.zeros((len(ends), 6, 6))
-    o_covs[:, :3, :3] = np.diag(np.mean(e[:, :3] ** 2, axis=0))
-    o_covs[:, 3:, 3:] = np.diag(np.mean(e[:, 3:] ** 2, axis=0))
-    for label, f in fits(o, o_covs).items():
+    for label, f in fits(*opencv_reported(seq, p)).items():
         lines.append(f"| OpenCV's dense odometry, {label} ({f['pairs']}) | {angles(f)} | — | — |")
     lines += ["", "Pairs over more intervals turn more: fr1_rpy taken every n-th frame (each phase a run of its own), "
               "rotation ANEES per half and over all pairs against the reference as it is / turned back by the fit "
@@ -891,21 +897,17 @@ def twist_change_table(data: Path) -> list[str]:
         return (f"{1e3 * f['backward_s']:+.1f} ± {1e3 * se[0]:.1f} / {1e3 * f['forward_s']:+.1f} ± {1e3 * se[1]:.1f}, "
                 f"{1e2 * f['rotation_scale']:+.1f} ± {1e2 * se[2]:.1f}")
 
+    def fit(q: dict, q_covs: np.ndarray, lo: int, hi: int) -> dict:
+        m = (q["end"] >= lo) & (q["end"] <= hi)
+        return twist_change_response(q["T_est"][m], q["T_true"][m], q_covs[m], q["t_ref"][m], q["t_cur"][m])
+
     rpy = None
     for name, ranges in SEGMENTS:
         seq = TumSequence(data / "tum" / name)
         p, covs = reported_pairs(seq, every_nth(seq, OdometryConfig(), 1))
-        theirs = opencv_pairs(seq, ground_truth_lookup(seq))
-        has = np.isin(p["end"], list(theirs))
-        T_cv = np.array([theirs[k] if k in theirs else np.eye(4) for k in p["end"]])
-        e = relative_pose_tangent_errors(T_cv[has], p["T_true"][has])[:, :3]
-        cv_covs = np.zeros_like(covs)
-        cv_covs[:, :3, :3] = np.diag(np.mean(e**2, axis=0))
+        o, o_covs = opencv_reported(seq, p)
         for label, lo, hi in (ranges if name == DESK else (*ranges, ("fr1_rpy, all", 1, 239))):
-            m = (p["end"] >= lo) & (p["end"] <= hi)
-            ours = twist_change_response(p["T_est"][m], p["T_true"][m], covs[m], p["t_ref"][m], p["t_cur"][m])
-            m &= has
-            other = twist_change_response(T_cv[m], p["T_true"][m], cv_covs[m], p["t_ref"][m], p["t_cur"][m])
+            ours, other = fit(p, covs, lo, hi), fit(o, o_covs, lo, hi)
             lines.append(f"| {label} ({ours['pairs']}) | {delay(ours)} | {fmt(ours)} | {ours['reduced_chi2']:.2f} | "
                          f"{delay(other)} | {fmt(other)} |")
         if name == RPY:
