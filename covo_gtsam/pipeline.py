@@ -338,7 +338,10 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
         if bag_out is not None:
             from .ros_io import OdometryBagWriter
 
-            bag = OdometryBagWriter(out, bag_out, camera_frame=getattr(seq, "camera_frame", "camera"))
+            exact = getattr(seq, "timestamps_ns", None)  # a bag's own stamps, kept exactly in its messages
+            bag = OdometryBagWriter(out, bag_out, camera_frame=getattr(seq, "camera_frame", "camera"),
+                                    stamps_ns=None if exact is None else dict(zip(seq.timestamps.tolist(),
+                                                                                 exact.tolist())))
         if progress:
             from tqdm import tqdm
 

@@ -17,7 +17,8 @@ one message per tracked frame, stamped with the frame's colour timestamp:
     ``Log(T_ref,cur) / dt`` (in ``child_frame_id``, as ROS requires), with covariance
     ``J Sigma J^T / dt^2`` reordered to ``[vx vy vz wx wy wz]`` (``J`` the derivative of Pose3's
     Logmap, ``Sigma`` the pair's covariance). The first frame of the run and the first of a new
-    segment have a zero twist with zero covariance (no pair).
+    segment have no pair, so no twist: zero, with :data:`UNKNOWN_TWIST_VARIANCE` on the diagonal
+    of its covariance (a zero covariance would tell a filter the camera is certainly at rest).
 
 ``/covo/relative`` -- ``geometry_msgs/PoseWithCovarianceStamped``
     One per estimated pair: the pose ``T_ref,cur`` (points of the current frame into the
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
 import gtsam
@@ -40,7 +42,8 @@ from .covariance import tangent_to_ros
 from .errors import ConfigError, DatasetError
 from .geometry import matrix_to_quat
 
-__all__ = ["BAG_FORMATS", "OdometryBagWriter", "bag_output_path", "clear_bag_output", "require_rosbags"]
+__all__ = ["BAG_FORMATS", "UNKNOWN_TWIST_VARIANCE", "OdometryBagWriter", "bag_output_path", "clear_bag_output",
+           "require_rosbags"]
 
 BAG_FORMATS = ("ros1", "ros2")
 ODOMETRY_TOPIC = "/covo/odometry"
@@ -141,9 +144,16 @@ def remove_earlier_bags(out_dir: str | os.PathLike, keep: str | None, inputs: tu
         _remove_bag(bag_output_path(out_dir, fmt))  # covo's: a removal that fails is an error
 
 
-def _stamp(t: float) -> tuple[int, int]:
-    ns = int(round(float(t) * 1e9))
-    return ns // 1_000_000_000, ns % 1_000_000_000
+#: variance ((m/s)^2, (rad/s)^2) of each twist component where there is no pair to measure it
+UNKNOWN_TWIST_VARIANCE = 1e6
+
+
+def _nanoseconds(t: float, exact: Mapping[float, int] | None = None) -> int:
+    """Stamp ``t`` (s) in integer nanoseconds: ``exact``'s value for it where given (a bag's own
+    stamps, which a float in seconds holds only to about 0.1 us today), else ``t`` rounded."""
+    if exact is not None and float(t) in exact:
+        return int(exact[float(t)])
+    return int(round(float(t) * 1e9))
 
 
 class OdometryBagWriter:
@@ -153,13 +163,15 @@ class OdometryBagWriter:
     skipped); use as a context manager, or call :meth:`close`.
     """
 
-    def __init__(self, out_dir: str | os.PathLike, fmt: str, camera_frame: str = "camera") -> None:
+    def __init__(self, out_dir: str | os.PathLike, fmt: str, camera_frame: str = "camera",
+                 stamps_ns: Mapping[float, int] | None = None) -> None:
         require_rosbags()
         from rosbags.typesys import Stores, get_typestore
 
         self.fmt = fmt
         self.path = bag_output_path(out_dir, fmt)
         self.camera_frame = camera_frame or "camera"
+        self._stamps_ns = stamps_ns
         clear_bag_output(out_dir, fmt)
         if fmt == "ros1":
             from rosbags.rosbag1 import Writer
@@ -184,10 +196,9 @@ class OdometryBagWriter:
         self._closed = False
 
     # -- message building ---------------------------------------------------------------------
-    def _header(self, t: float, frame_id: str):
+    def _header(self, ns: int, frame_id: str):
         T = self.ts.types
-        sec, nsec = _stamp(t)
-        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
+        stamp = T["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
         if self.fmt == "ros1":
             return T["std_msgs/msg/Header"](seq=self._seq, stamp=stamp, frame_id=frame_id)
         return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
@@ -210,7 +221,7 @@ class OdometryBagWriter:
         vec = T["geometry_msgs/msg/Vector3"]
         w = np.zeros(3)
         v = np.zeros(3)
-        cov = np.zeros((6, 6))
+        cov = UNKNOWN_TWIST_VARIANCE * np.eye(6)
         if step.has_relative_pose and step.relative is not None:
             dt = float(step.timestamp - step.ref_timestamp)
             if dt > 0:
@@ -229,14 +240,14 @@ class OdometryBagWriter:
         if not step.has_pose:
             return
         T = self.ts.types
-        ns = int(round(float(step.timestamp) * 1e9))
+        ns = _nanoseconds(step.timestamp, self._stamps_ns)
         odom = T["nav_msgs/msg/Odometry"](
-            header=self._header(step.timestamp, ODOM_FRAME), child_frame_id=self.camera_frame,
+            header=self._header(ns, ODOM_FRAME), child_frame_id=self.camera_frame,
             pose=self._pose_with_covariance(step.pose, step.pose_covariance), twist=self._twist(step))
         self._writer.write(self._odom, ns, self._serialize(odom, "nav_msgs/msg/Odometry"))
         if step.has_relative_pose:
             rel = T["geometry_msgs/msg/PoseWithCovarianceStamped"](
-                header=self._header(step.timestamp, f"{self.camera_frame}@{step.ref_timestamp:.6f}"),
+                header=self._header(ns, f"{self.camera_frame}@{step.ref_timestamp:.6f}"),
                 pose=self._pose_with_covariance(step.relative, step.covariance))
             self._writer.write(self._rel, ns, self._serialize(rel, "geometry_msgs/msg/PoseWithCovarianceStamped"))
         self._seq += 1

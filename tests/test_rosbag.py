@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import cv2
 import gtsam
@@ -22,6 +23,7 @@ from covo_gtsam.datasets.rosbag import RosbagSequence  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.errors import DatasetError  # noqa: E402
 from covo_gtsam.io import load_relative_poses, load_tum_trajectory  # noqa: E402
+from covo_gtsam.ros_io import UNKNOWN_TWIST_VARIANCE  # noqa: E402
 
 N = 20
 FRAME = "openni_rgb_optical_frame"
@@ -38,7 +40,7 @@ def _typestore(ros1: bool):
 
 
 def _header(ts, ros1, t, frame_id):
-    ns = int(round(t * 1e9))
+    ns = int(round(t * 1e6)) * 1000  # the text files' whole microseconds, which a float in seconds cannot hold
     stamp = ts.types["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
     H = ts.types["std_msgs/msg/Header"]
     return H(seq=0, stamp=stamp, frame_id=frame_id) if ros1 else H(stamp=stamp, frame_id=frame_id)
@@ -209,7 +211,7 @@ def test_ros1_bag_rgb8_32fc1_runs_like_the_folder(fr1_rpy_dir, tmp_path, capsys)
     assert mb["rpe_1"]["trans_rmse"] == pytest.approx(mr["rpe_1"]["trans_rmse"], rel=1e-4)
     assert mb["anees_translation"] == pytest.approx(mr["anees_translation"], rel=1e-3)
     assert mb["nees_with_reference_jitter"] and mb["reference_jitter"]["samples"] > 0
-    check_output_bag(tmp_path / "bag_out", tmp_path / "bag_out" / "odometry.bag", FRAME)
+    check_output_bag(tmp_path / "bag_out", tmp_path / "bag_out" / "odometry.bag", FRAME, input_bag=bag)
 
 
 @pytest.mark.slow
@@ -229,7 +231,7 @@ def test_ros2_bag_bgr8_16uc1_runs_like_the_millimetre_folder(fr1_rpy_dir, tmp_pa
     _same_trajectory(tmp_path / "ref_out", tmp_path / "bag_out")
     m = json.loads((tmp_path / "bag_out" / "metrics.json").read_text())
     assert m["rpe_1"] is None and m["not_computed"]["rpe_1"] == "the sequence has no ground truth"
-    check_output_bag(tmp_path / "bag_out", tmp_path / "bag_out" / "odometry", FRAME)
+    check_output_bag(tmp_path / "bag_out", tmp_path / "bag_out" / "odometry", FRAME, input_bag=bag)
 
 
 def _ros_errors(T: gtsam.Pose3, samples):
@@ -249,9 +251,18 @@ def _pose(msg_pose):
     return gtsam.Pose3(gtsam.Rot3.Quaternion(q.w, q.x, q.y, q.z), np.array([p.x, p.y, p.z]))
 
 
-def check_output_bag(out, bag_path, camera_frame):
+def _colour_stamps(bag_path, topic="/camera/rgb/image_color"):
+    """The (sec, nanosec) stamps of a bag's colour images, read with rosbags."""
+    with AnyReader([Path(bag_path)]) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        return [(m.header.stamp.sec, m.header.stamp.nanosec)
+                for m in (reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections=conns))]
+
+
+def check_output_bag(out, bag_path, camera_frame, input_bag=None):
     """Read the written bag back with rosbags; poses equal the text files; covariances equal the
-    empirical covariance of sampled position errors and fixed-axis rotations."""
+    empirical covariance of sampled position errors and fixed-axis rotations; with ``input_bag``,
+    the messages carry the input colour images' stamps exactly, to the nanosecond."""
     stamps, traj = load_tum_trajectory(out / "trajectory.txt")
     t_ref, t_cur, rel, covs = load_relative_poses(out / "relative.txt")
     odom, relm = [], []
@@ -270,6 +281,17 @@ def check_output_bag(out, bag_path, camera_frame):
     for (_, m), a, _, T in zip(relm, t_ref, t_cur, rel):
         assert m.header.frame_id == f"{camera_frame}@{a:.6f}"
         np.testing.assert_allclose(_pose(m.pose.pose).matrix(), T, atol=1e-8)
+    if input_bag is not None:
+        # exact stamps pair covo's messages with the images (message_filters' ExactTime, a dict
+        # keyed by stamp); seconds as a float would miss most by up to a tenth of a microsecond
+        colour = _colour_stamps(input_bag)
+        out_stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for _, m in odom]
+        assert out_stamps == colour[:len(out_stamps)]
+        assert [(m.header.stamp.sec, m.header.stamp.nanosec) for _, m in relm] == out_stamps[1:len(relm) + 1]
+        assert [ns for ns, _ in odom] == [s * 10**9 + n for s, n in out_stamps]
+    # the first frame has no pair: a zero twist that a filter must not trust (not a zero covariance)
+    first = np.array(odom[0][1].twist.covariance).reshape(6, 6)
+    np.testing.assert_array_equal(first, UNKNOWN_TWIST_VARIANCE * np.eye(6))
 
     rng = np.random.default_rng(0)
     # relative pose: sample T_true = T Exp(xi), xi ~ N(0, relative.txt's covariance)

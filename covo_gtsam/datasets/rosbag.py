@@ -66,6 +66,11 @@ def _stamp(header) -> float:
     return float(s.sec) + 1e-9 * float(s.nanosec)
 
 
+def _stamp_ns(header) -> int:
+    """The header's stamp in whole nanoseconds, exactly (a float in seconds is not, today)."""
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
 def _field(msg, *names):
     """The first of ``names`` that ``msg`` has (ROS 1 ``K`` vs ROS 2 ``k``)."""
     for n in names:
@@ -222,7 +227,7 @@ class RosbagSequence:
             depth_c = self._connections(reader, self.depth_topic)
             info_c = self._connections(reader, self.camera_info_topic, required=False)
             tf_c = [c for c in reader.connections if c.topic in TF_TOPICS]
-            rgb_t, depth_t = [], []
+            rgb_t, rgb_ns, depth_t = [], [], []
             frame_id = ""
             tf: dict[str, dict] = {}  # child frame -> parent, static, samples (stamp, position, quaternion)
             for conn, _, raw in reader.messages(connections=rgb_c + depth_c + info_c + tf_c):
@@ -232,6 +237,7 @@ class RosbagSequence:
                         raise DatasetError(f"{self.path}: topic {conn.topic} has image encoding {msg.encoding!r}; "
                                            f"colour must be one of {', '.join(COLOUR_ENCODINGS)}")
                     rgb_t.append(_stamp(msg.header))
+                    rgb_ns.append(_stamp_ns(msg.header))
                     frame_id = frame_id or msg.header.frame_id
                 elif conn.topic == self.depth_topic:
                     if msg.encoding not in DEPTH_ENCODINGS:
@@ -261,6 +267,8 @@ class RosbagSequence:
         self._rgb_index = np.array([i for i, _ in pairs], dtype=int)
         self._depth_index = np.array([j for _, j in pairs], dtype=int)
         self.timestamps = self._rgb_t[self._rgb_index]
+        #: the colour messages' stamps exactly, in integer nanoseconds (the output bag's stamps)
+        self.timestamps_ns = np.array(rgb_ns, dtype=np.int64)[self._rgb_index]
         #: the associated depth images' stamps (s): the run takes each frame's colour-depth offset from them
         self.depth_timestamps = self._depth_t[self._depth_index]
         self.camera_frame = frame_id.lstrip("/") or "camera"
