@@ -1,6 +1,6 @@
 """Camera files for ``--camera FILE``: intrinsics, distortion, image size and depth scale.
 
-Two layouts are read:
+Three layouts are read:
 
 * **ROS ``camera_calibration`` YAML** (``.yaml`` / ``.yml``, as written by ``cameracalibrator`` and
   read by ``camera_info_manager``): ``image_width``, ``image_height``, ``camera_matrix``
@@ -9,6 +9,12 @@ Two layouts are read:
   ``rectification_matrix`` and ``projection_matrix`` are accepted and not used. The optional
   ``depth_scale`` (raw depth units per metre) is not part of ROS's format; without it the run's
   configuration keeps its own (default 5000). Needs PyYAML.
+* **OpenCV calibration YAML** (``.yaml`` / ``.yml`` as ``cv::FileStorage`` writes it, e.g. OpenCV's
+  camera calibration sample: a first line ``%YAML:1.0`` or matrices tagged ``!!opencv-matrix``): ``image_width``, ``image_height``,
+  ``camera_matrix`` (a 3x3 ``!!opencv-matrix``) and the optional ``distortion_coefficients``
+  (4, 5 or 8 values, OpenCV's order) and ``depth_scale``, read with OpenCV's own reader; the
+  calibration's other entries (views, reprojection errors, board) are not used. A
+  ``fisheye_model`` other than 0 is not supported.
 * **TOML** (``.toml``) or **JSON** (``.json``) with the keys ``fx fy cx cy`` (pixels), ``width
   height`` (pixels), ``depth_scale`` (raw depth units per metre of the depth images: 5000 for TUM
   RGB-D, 1000 for depth recorded in millimetres) and the optional distortion ``k1 k2 p1 p2 k3``
@@ -47,7 +53,8 @@ from .camera import Camera
 from .errors import ConfigError
 from .io import read_settings_file
 
-__all__ = ["check_camera_matrix", "checked_camera", "load_camera_file", "plumb_bob", "resolve_camera"]
+__all__ = ["check_camera_matrix", "checked_camera", "is_opencv_yaml", "load_camera_file", "plumb_bob",
+           "resolve_camera"]
 
 _REQUIRED = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
 _DIST = ("k1", "k2", "p1", "p2", "k3")
@@ -164,6 +171,70 @@ def _from_yaml(p: Path, data: dict) -> tuple[dict, float | None]:
     return values, None if scale is None else _number(p, "depth_scale", scale, text=True)
 
 
+def is_opencv_yaml(p: Path) -> bool:
+    """True for a YAML file in OpenCV's ``FileStorage`` dialect, which YAML readers reject: a first
+    line ``%YAML:1.0`` (OpenCV 3 and 4) or matrices tagged ``!!opencv-matrix`` (OpenCV 5 too)."""
+    try:
+        with open(p, "rb") as f:
+            head = f.read(1 << 20)
+    except OSError:
+        return False
+    return head.lstrip(b"\xef\xbb\xbf").startswith(b"%YAML:") or b"!!opencv-matrix" in head
+
+
+def _from_opencv(p: Path) -> tuple[dict, float | None]:
+    """An OpenCV calibration file's camera, read with ``cv2.FileStorage``."""
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # a parse error comes as either, by OpenCV version
+        text = str(exc.__cause__ or exc).strip()
+        raise ConfigError(f"{p}: not a valid OpenCV calibration file ({text.splitlines()[-1] if text else 'unreadable'})"
+                          ) from None
+    try:
+        if not fs.isOpened():
+            raise ConfigError(f"{p}: cannot read the OpenCV calibration file")
+        missing = [k for k in ("image_width", "image_height", "camera_matrix") if fs.getNode(k).empty()]
+        if missing:
+            raise ConfigError(f"{p}: missing keys {', '.join(missing)} (OpenCV calibration file)")
+
+        def matrix(key: str) -> np.ndarray:
+            m = fs.getNode(key).mat()
+            if m is None:
+                raise ConfigError(f"{p}: {key} must be an opencv-matrix")
+            return np.asarray(m, dtype=float)
+
+        def number(key: str):
+            node = fs.getNode(key)
+            if not (node.isInt() or node.isReal()):
+                raise ConfigError(f"{p}: {key} must be a number")
+            return node.real()
+
+        K = matrix("camera_matrix")
+        if K.shape != (3, 3):
+            raise ConfigError(f"{p}: camera_matrix must be 3x3, got {K.shape[0]}x{K.shape[1]}")
+        K = [_number(p, "camera_matrix", k) for k in K.ravel()]
+        check_camera_matrix(p, K, item="camera_matrix")
+        if not fs.getNode("fisheye_model").empty() and number("fisheye_model") != 0:
+            raise ConfigError(f"{p}: fisheye_model is not supported (plumb_bob: k1 k2 p1 p2 k3)")
+        dist = (0.0,) * 5
+        if not fs.getNode("distortion_coefficients").empty():
+            D = matrix("distortion_coefficients").ravel()
+            if D.size not in (4, 5, 8):
+                raise ConfigError(f"{p}: distortion_coefficients needs 4, 5 or 8 numbers, got {D.size}")
+            dist = plumb_bob(p, "plumb_bob", [_number(p, "distortion_coefficients", d) for d in D])
+        size = {}
+        for k in ("image_width", "image_height"):
+            v = number(k)
+            size[k] = int(v) if float(v).is_integer() else v
+        scale = None if fs.getNode("depth_scale").empty() else _number(p, "depth_scale", number("depth_scale"))
+    finally:
+        fs.release()
+    return {"fx": K[0], "fy": K[4], "cx": K[2], "cy": K[5], "dist": dist, "width": size["image_width"],
+            "height": size["image_height"], "name": p.stem}, scale
+
+
 def _from_table(p: Path, data: dict) -> tuple[dict, float]:
     missing = [k for k in _REQUIRED if k not in data]
     unknown = sorted(set(data) - set(_REQUIRED) - set(_DIST) - {"name"})
@@ -207,9 +278,12 @@ def load_camera_file(path: str | os.PathLike) -> tuple[Camera, float | None]:
             distortion that cannot be undistorted over the image).
     """
     p = Path(path)
-    data = _read(p)
     is_yaml = p.suffix.lower() in (".yaml", ".yml")
-    values, scale = _from_yaml(p, data) if is_yaml else _from_table(p, data)
+    if is_yaml and is_opencv_yaml(p):
+        values, scale = _from_opencv(p)
+    else:
+        data = _read(p)
+        values, scale = _from_yaml(p, data) if is_yaml else _from_table(p, data)
     if scale is not None and not scale > 0:
         raise ConfigError(f"{p}: depth_scale must be positive, got {scale:g}")
     return checked_camera(p, values, size_prefix="image_" if is_yaml else ""), scale

@@ -92,7 +92,8 @@ def _sequence_arguments(parser: argparse.ArgumentParser, help: str, bags: bool =
 def _camera_argument(parser: argparse.ArgumentParser, bags: bool = True) -> None:
     default = "the bag's camera info, or guessed" if bags else "guessed"
     parser.add_argument("--camera", metavar="NAME|FILE",
-                        help="camera preset fr1, fr2 or fr3, or a camera file: ROS camera_calibration YAML, or "
+                        help="camera preset fr1, fr2 or fr3, or a camera file: ROS camera_calibration YAML, OpenCV "
+                        "calibration YAML (cv::FileStorage), or "
                         f"TOML/JSON with fx fy cx cy width height depth_scale [k1 k2 p1 p2 k3] (default: {default} "
                         "from the folder name, e.g. 'freiburg1' -> fr1)")
 

@@ -236,3 +236,80 @@ def test_ros_yaml_numbers_in_scientific_notation_read_as_numbers(tmp_path):
     cam, scale = load_camera_file(f)
     _same_camera(cam, Camera.preset("fr1"))
     assert scale == 5000.0
+
+
+def _opencv_calibration(path, K=None, D=None, extra: dict | None = None, skip=()):
+    """A calibration file written by OpenCV's own ``cv2.FileStorage``, laid out as OpenCV's camera
+    calibration sample writes it (with its entries covo does not use)."""
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("calibration_time", "Wed Nov 25 12:00:00 2026")
+    fs.write("nr_of_frames", 25)
+    for k, v in (("image_width", 640), ("image_height", 480)):
+        if k not in skip:
+            fs.write(k, v)
+    fs.write("board_width", 9)
+    fs.write("flags", 0)
+    if "camera_matrix" not in skip:
+        fs.write("camera_matrix", np.array([[517.3, 0, 318.6], [0, 516.5, 255.3], [0, 0, 1]]) if K is None else K)
+    fs.write("distortion_coefficients", np.array([[FR1[k]] for k in ("k1", "k2", "p1", "p2", "k3")])
+             if D is None else D)
+    fs.write("avg_reprojection_error", 0.21)
+    fs.write("per_view_reprojection_errors", np.full((25, 1), 0.2))
+    for k, v in (extra or {}).items():
+        fs.write(k, v)
+    fs.release()
+    return path
+
+
+def test_opencv_calibration_file_reads_the_fr1_values(sample_dir, tmp_path):
+    f = _opencv_calibration(tmp_path / "calib.yml")
+    assert "!!opencv-matrix" in f.read_text()  # the dialect PyYAML cannot read
+    cam, scale = load_camera_file(f)
+    _same_camera(cam, Camera.preset("fr1"))
+    assert scale is None
+    g = _opencv_calibration(tmp_path / "calib_mm.yaml", extra={"depth_scale": 1000.0})
+    assert load_camera_file(g)[1] == 1000.0
+    # and the run gives the preset's trajectory
+    seq = tmp_path / "some_other_dataset"
+    shutil.copytree(sample_dir, seq)
+    for name, camera in (("preset", "fr1"), ("file", str(f))):
+        assert main(["run", str(seq), "--out", str(tmp_path / name), "--camera", camera, "--max-frames", "8",
+                     "--no-plots", "--quiet"]) == 0
+    t0, P0 = load_tum_trajectory(tmp_path / "preset" / "trajectory.txt")
+    t1, P1 = load_tum_trajectory(tmp_path / "file" / "trajectory.txt")
+    assert len(t0) >= 6
+    np.testing.assert_array_equal(t0, t1)
+    np.testing.assert_allclose(P1, P0, atol=1e-9)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    (dict(skip=("camera_matrix",)), "missing keys camera_matrix (OpenCV calibration file)"),
+    (dict(skip=("image_width",)), "missing keys image_width (OpenCV calibration file)"),
+    (dict(K=np.array([[517.3, 0, 318.6], [0, 516.5, 255.3]])), "camera_matrix must be 3x3, got 2x3"),
+    (dict(K=np.array([[517.3, 2.0, 318.6], [0, 516.5, 255.3], [0, 0, 1]])), "skew"),
+    (dict(K=np.array([[517.3, 0, 0], [0, 516.5, 0], [318.6, 255.3, 1]])), "transposed"),
+    (dict(D=np.array([[0.1], [0.0], [0.0], [0.0], [0.0], [0.3], [0.0], [0.0]])), "k4..k6 are not supported"),
+    (dict(D=np.zeros((3, 1))), "distortion_coefficients needs 4, 5 or 8 numbers, got 3"),
+    (dict(extra={"fisheye_model": 1}), "fisheye_model is not supported"),
+    (dict(extra={"image_width": 640.5}), "image_width must be a positive integer"),
+])
+def test_bad_opencv_calibration_file_is_one_line_exit_2(sample_dir, tmp_path, capsys, kwargs, needle):
+    skip = kwargs.pop("skip", ())
+    extra = kwargs.get("extra", {})
+    if "image_width" in extra:
+        skip = ("image_width",)
+    f = _opencv_calibration(tmp_path / "cam.yaml", skip=skip, **kwargs)
+    with pytest.raises(ConfigError, match=re.escape(needle)):
+        load_camera_file(f)
+    assert main(["run", str(sample_dir), "--out", str(tmp_path / "o"), "--camera", str(f), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and needle in err and str(f) in err
+
+
+def test_broken_opencv_calibration_file_is_a_clear_error(tmp_path):
+    f = tmp_path / "cam.yaml"
+    f.write_text("%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: [\n")
+    with pytest.raises(ConfigError, match="not a valid OpenCV calibration file"):
+        load_camera_file(f)
