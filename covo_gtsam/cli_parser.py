@@ -10,8 +10,11 @@ from collections.abc import Callable, Mapping
 EPILOG = """\
 conventions:
   T_ref,cur maps points of the current camera frame into the reference frame.
-  Covariances are 6x6 in GTSAM's Pose3 tangent [rx ry rz tx ty tz] (rad, m),
-  right perturbation T_true = T_est * Exp(xi).  Quaternions are qx qy qz qw.
+  Covariances (relative.txt, the Python API) are 6x6 in GTSAM's Pose3 tangent
+  [rx ry rz tx ty tz] (rad, m), right perturbation T_true = T_est * Exp(xi).
+  graph.g2o holds their inverse in g2o's order [x y z rx ry rz]; ROS bags
+  (--bag-out) hold ROS's [x y z rot_x rot_y rot_z] about the parent's axes.
+  Quaternions are qx qy qz qw.
 
 exit codes:
   0 done; 2 unusable input (one line on stderr); 130 interrupted (Ctrl-C);

@@ -13,6 +13,9 @@ Outputs in ``out_dir``:
   messages (:mod:`covo_gtsam.ros_io`);
 * ``metrics.json`` -- frames, lost frames, frames/s, and accuracy/consistency metrics when
   ground truth exists; ``version``: the package's version;
+* ``groundtruth_at_frames.txt`` -- with ground truth: TUM format, the reference's poses interpolated
+  at the frames' colour stamps (in the reference's own world frame), which ``metrics.json``'s
+  accuracy and consistency are measured against; evo reproduces them from it;
 * ``config.toml`` -- the configuration of the run (:func:`covo_gtsam.config.save_config`):
   ``covo run SEQ --config OUT/config.toml`` repeats it;
 * ``plots/`` -- PNG figures (unless disabled).
@@ -51,7 +54,7 @@ from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData
 from .g2o import G2oWriter
 from .interrupt import check as check_interrupt
-from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json
+from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json, write_tum_trajectory
 from .odometry import EMPTY_DEPTH, OdometryStep, VisualOdometry
 from .prefetch import Prefetcher
 from .steps import StepHistory
@@ -62,7 +65,7 @@ if TYPE_CHECKING:
 
 
 #: Files a run writes into its results folder (besides the figures of ``plots/``).
-RUN_FILES = ("trajectory.txt", "relative.txt", "graph.g2o", "metrics.json", "config.toml")
+RUN_FILES = ("trajectory.txt", "relative.txt", "graph.g2o", "metrics.json", "config.toml", "groundtruth_at_frames.txt")
 
 
 @dataclass
@@ -306,6 +309,20 @@ def run_sequence(
             return _run(vo, StepHistory(keep_error_bases), seq, out, config, max_frames, plots, progress, bag_out)
 
 
+def write_frame_ground_truth(path: Path, seq, n: int) -> bool:
+    """Write the ground truth at the first ``n`` frames' colour stamps (TUM format; the frames
+    without one left out), the poses ``metrics.json`` measures against; False (nothing written)
+    when the sequence has none."""
+    gt = getattr(seq, "groundtruth", None)
+    if gt is None:
+        return False
+    ok = np.asarray(seq.gt_valid[:n], bool)
+    if not ok.any():
+        return False
+    write_tum_trajectory(path, np.asarray(seq.timestamps[:n])[ok], np.asarray(gt[:n])[ok])
+    return True
+
+
 def _naming_the_depth_file(step, seq, i: int):
     """``step``, its reason naming frame ``i``'s depth image file where the frame was lost for an empty
     depth image (a TUM folder's; a bag's images have no file)."""
@@ -389,6 +406,7 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
     evaluation.version = __version__
     metrics = evaluation.to_dict()
     write_json(out / "metrics.json", metrics)
+    write_frame_ground_truth(out / "groundtruth_at_frames.txt", seq, n)
     result = RunResult(out, metrics, history.steps, evaluation)
     if plots:
         from .plots import plot_run

@@ -37,20 +37,27 @@ def test_run_on_sample_writes_consistent_outputs(sample_dir, tmp_path, capsys):
     for a, b, T in zip(t_ref, t_cur, rel):
         np.testing.assert_allclose(traj[index[round(a, 6)]] @ T, traj[index[round(b, 6)]], atol=1e-6)
     assert np.all(np.linalg.eigvalsh(covs) > 0)
-    # evo reads the trajectory as it is and agrees on the RPE
+    # evo reads the trajectory and the ground truth at the frames as they are and gives metrics.json's
+    # accuracy: RPE over 1 and 30 frames, translation and rotation, and the ATE after alignment
     from evo.core import metrics, sync
     from evo.tools import file_interface
 
     est = file_interface.read_tum_trajectory_file(str(out / "trajectory.txt"))
+    ref = file_interface.read_tum_trajectory_file(str(out / "groundtruth_at_frames.txt"))
     seq = TumSequence(sample_dir)
-    gt = seq.groundtruth
-    from evo.core.trajectory import PoseTrajectory3D
-
-    ref = PoseTrajectory3D(poses_se3=list(gt), timestamps=seq.timestamps)
+    np.testing.assert_allclose(ref.poses_se3, seq.groundtruth, atol=1e-6)  # the interpolated poses, unmoved
     ref, est = sync.associate_trajectories(ref, est, max_diff=1e-4)
-    r = metrics.RPE(metrics.PoseRelation.translation_part, 1, metrics.Unit.frames, all_pairs=True)
-    r.process_data((ref, est))
-    assert r.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(m["rpe_1"]["trans_rmse"], rel=1e-5)
+    assert est.num_poses == 40
+    for delta in (1, 30):
+        for relation, key in ((metrics.PoseRelation.translation_part, "trans_rmse"),
+                              (metrics.PoseRelation.rotation_angle_deg, "rot_rmse_deg")):
+            r = metrics.RPE(relation, delta, metrics.Unit.frames, all_pairs=True)
+            r.process_data((ref, est))
+            assert r.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(m[f"rpe_{delta}"][key], rel=1e-5)
+    est.align(ref)
+    a = metrics.APE(metrics.PoseRelation.translation_part)
+    a.process_data((ref, est))
+    assert a.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(m["ate"]["rmse"], rel=1e-4)
     assert {p.name for p in (out / "plots").iterdir()} >= {"trajectory.png", "nees.png", "rpe.png"}
     # the 30-pair chains: from relative.txt, composed pair by pair with GTSAM's adjoint, against the
     # ground truth between the chains' ends (the ten windows of the 39 consecutive pairs)
