@@ -46,6 +46,12 @@ __all__ = ["VisualOdometry", "OdometryConfig", "OdometryStep", "StepStatus", "PO
 REWEIGHT_TOL_RAD = 1e-2
 #: What a lost frame's reason says when no pixel of its depth image is in the depth range.
 EMPTY_DEPTH = "the depth image has no depth"
+#: A pair is lost when fewer than this share of its matches agree on one rigid motion (the outlier
+#: rejection's inliers): a majority. Cross-checked matches of a consistent pair agree far more
+#: (86-100 % on the shared fr1 frames); a depth image that belongs to another instant leaves a
+#: small consensus on a grossly wrong motion (17 % on a wrong pose of 20 deg: docs/derivation.md,
+#: "The integrity check").
+MIN_CONSENSUS = 0.5
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,13 @@ def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
     if not step.flagged:
         return step.velocity
     return None if step.stamp_twist is step.velocity else step.stamp_twist
+
+
+def _repeats(ref: FrameData, frame: FrameData) -> bool:
+    """True when ``frame``'s keypoints and descriptors are ``ref``'s exactly: the same colour image."""
+    a, b = ref.features, frame.features
+    return (len(a) > 0 and a.uv.shape == b.uv.shape and np.array_equal(a.uv, b.uv)
+            and np.array_equal(a.descriptors, b.descriptors))
 
 
 def _positive_definite(C: np.ndarray) -> bool:
@@ -327,6 +340,10 @@ class VisualOdometry(DeprecatedStepAccess):
     def _track(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, timestamp: float) -> OdometryStep:
         """The pair (``ref``, ``frame``): matched point pairs, relative pose, covariance, integrity
         check, pose (a lost step with the reason when a stage fails)."""
+        if _repeats(ref, frame):  # a real camera's noise never gives the same image twice
+            return OdometryStep(timestamp, StepStatus.LOST, ref_timestamp=ref_step.timestamp, reason=(
+                "its colour image repeats its reference frame's exactly (the same keypoints and descriptors): a "
+                "frozen or duplicated frame, whose capture time is not its stamp"))
         guess = self.predict(ref_step, timestamp)
         pairs = associate_frames(ref, frame, self.config.frontend, None if guess is None else guess.matrix(),
                                  self.camera)
@@ -337,6 +354,11 @@ class VisualOdometry(DeprecatedStepAccess):
             step.reason = (f"only {pairs.num_inliers} point pairs (need {min_pairs}; {frame.num_features} features "
                            f"detected, {frame.num_valid} with valid depth, {pairs.num_matches} matched)"
                            f"{self._no_depth_note(frame)}")
+            return step
+        if pairs.num_inliers < MIN_CONSENSUS * pairs.num_matches:
+            step.reason = (f"no consensus: {pairs.num_inliers} of {pairs.num_matches} matches agree on one motion "
+                           f"(fewer than {MIN_CONSENSUS:.0%}: a depth or colour image that does not belong to the "
+                           "frame, or a scene that mostly moves)")
             return step
         # time between the two captures: the stamps' difference corrected by the frame clock
         dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)

@@ -148,7 +148,8 @@ BAD_DEPTH = set(range(30, 237, 12))
 def _with_bad_depth(fr1_rpy_dir, keyframes: bool) -> dict:
     """fr1_rpy with the depth images of :data:`BAD_DEPTH` replaced by those of the frame 100 ms
     later: for each pair with ground truth its error, NEES under the reported covariance, frame
-    indices, whether it is bad (either frame is) and whether it is flagged."""
+    indices, whether it is bad (either frame is) and whether it is flagged; and the frames lost
+    (index -> reason)."""
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
     from covo_gtsam.metrics import nees, relative_pose_tangent_errors
@@ -169,28 +170,34 @@ def _with_bad_depth(fr1_rpy_dir, keyframes: bool) -> dict:
     index = {t: i for i, t in enumerate(seq.timestamps)}
     ref, cur = (np.array([index[getattr(s, a)] for s in kept]) for a in ("ref_timestamp", "timestamp"))
     bad = np.isin(ref, list(BAD_DEPTH)) | np.isin(cur, list(BAD_DEPTH))
-    return {"err": err, "bad": bad, "ref": ref, "cur": cur,
-            "flagged": np.array([s.flagged for s in kept]), "nees_t": nees(err[:, 3:], covs[:, 3:, 3:]),
+    flagged = np.array([s.flagged for s in kept])
+    lost = {i: s.reason for i, s in enumerate(steps) if not s.has_pose}
+    # a bad frame is caught when it is lost, or when every pair it is in is flagged
+    caught = [b in lost or (np.any((ref == b) | (cur == b)) and flagged[(ref == b) | (cur == b)].all())
+              for b in sorted(BAD_DEPTH)]
+    return {"err": err, "bad": bad, "ref": ref, "cur": cur, "flagged": flagged, "lost": lost,
+            "caught": np.array(caught), "nees_t": nees(err[:, 3:], covs[:, 3:, 3:]),
             "nees_6": np.einsum("ni,nij,nj->n", err, np.linalg.inv(covs), err)}
 
 
 @pytest.mark.slow
 @pytest.mark.realdata
-def test_bad_depth_images_on_real_frames_leave_with_covariances_that_cover_them(fr1_rpy_dir):
+def test_bad_depth_images_on_real_frames_are_lost_or_leave_with_covariances_that_cover_them(fr1_rpy_dir):
     """fr1_rpy with the depth images of 18 frames replaced by those of the frame 100 ms later (a
-    depth image delivered with the wrong colour image; translation errors of about 0.17 m): no
-    pair with such a frame leaves with a 6-dof NEES above 100 under its reported covariance, most
-    are flagged, and at most 2 % of the other pairs are. The pairs that start at the frame after a
-    bad one stay within 1.4 times the other pairs' translation ANEES: about 1.0 when the next pair
-    takes its reference frame's twist from a trusted pair, 1.7 when it took the flagged pair's
-    (and 5.9 when a flagged pair's twist also moved its end to the stamp)."""
+    depth image delivered with the wrong colour image): at least 90 % of them are caught (17 of
+    18): lost, since most of their matches disagree with the one motion their few consistent points
+    give (14), or flagged in every pair (3). No other frame is lost and at most 2 % of the other
+    pairs are flagged; no pair with a bad frame leaves with a 6-dof NEES above 100. The pairs that
+    start at the frame after a bad one stay within 1.4 times the other pairs' translation ANEES:
+    about 1.0 when the next pair takes its reference frame's twist from a trusted pair, 1.7 when it
+    took the flagged pair's (and 5.9 when a flagged pair's twist also moved its end to the stamp)."""
     r = _with_bad_depth(fr1_rpy_dir, keyframes=False)
     bad, nt = r["bad"], r["nees_t"]
     after = np.isin(r["ref"] - 1, list(BAD_DEPTH)) & ~bad  # starting at the frame after a bad one
-    assert bad.sum() >= 30
-    assert np.sqrt(np.mean(np.sum(r["err"][bad, 3:] ** 2, axis=1))) > 0.05  # gross errors
+    assert r["caught"].mean() >= 0.9, r["caught"]
+    assert set(r["lost"]) <= BAD_DEPTH, r["lost"]
+    assert all(("no consensus" in why or "point pairs" in why) for why in r["lost"].values())
     assert r["nees_6"][bad].max() < 100
-    assert r["flagged"][bad].mean() >= 0.75
     assert r["flagged"][~bad].mean() <= 0.02
     assert after.sum() >= 15
     assert nt[after].mean() < 1.4 * nt[~bad & ~after].mean(), (nt[after].mean(), nt[~bad & ~after].mean())
@@ -202,14 +209,70 @@ def test_after_a_bad_depth_image_keyframe_mode_takes_no_twist_from_the_flagged_f
     """Keyframe mode, the same 18 depth images replaced by those 100 ms later: the pairs ending at
     the frame after a bad one (neither frame bad) stay within 1.4 times the other pairs'
     translation ANEES (2.8 times, 4.19 against 1.49, when a frame's twist was taken from its motion
-    since a flagged last frame). Most pairs with a bad frame are flagged, and none leaves with a
-    6-dof NEES above 100 (largest 24.3; 502 at quality 43, below the flag, when the run's integrity
-    scale took pairs of every length alike instead of each on the scale of one interval)."""
+    since a flagged last frame). At least 75 % of the bad frames are caught, lost or flagged in
+    every pair (14 of 18: fewer than frame to frame, since a keyframe pair spans more motion), no
+    other frame is lost, and no pair with a bad frame leaves with a 6-dof NEES above 100 (502 at
+    quality 43, below the flag, when the run's integrity scale took pairs of every length alike
+    instead of each on the scale of one interval)."""
     r = _with_bad_depth(fr1_rpy_dir, keyframes=True)
     bad, nt = r["bad"], r["nees_t"]
     after = np.isin(r["cur"] - 1, list(BAD_DEPTH)) & ~bad  # ending at the frame after a bad one
-    assert bad.sum() >= 15 and after.sum() >= 15
-    assert np.sqrt(np.mean(np.sum(r["err"][bad, 3:] ** 2, axis=1))) > 0.05  # gross errors
+    assert after.sum() >= 15
+    assert r["caught"].mean() >= 0.75, r["caught"]
+    assert set(r["lost"]) <= BAD_DEPTH, r["lost"]
     assert r["nees_6"][bad].max() < 100
-    assert r["flagged"][bad].mean() >= 0.6 and r["flagged"][~bad].mean() <= 0.02  # 13 of 17 (10 before)
+    assert r["flagged"][~bad].mean() <= 0.02
     assert nt[after].mean() < 1.4 * nt[~bad & ~after].mean(), (nt[after].mean(), nt[~bad & ~after].mean())
+
+
+def _frame_lost_and_pairs_near_truth(seq_dir, expect_lost: dict[int, str]) -> None:
+    """Run ``covo run``'s pipeline on ``seq_dir``: the frames ``expect_lost`` (index -> a phrase of
+    the reason) are lost, no other frame is, and every pair's rotation error is below 3 deg."""
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.evaluation import ground_truth_lookup, relative_ground_truth
+    from covo_gtsam.metrics import relative_pose_tangent_errors
+    from covo_gtsam.pipeline import run_sequence
+
+    run = run_sequence(seq_dir, seq_dir.parent / (seq_dir.name + "_out"), plots=False, progress=False)
+    lost = {i: s.reason for i, s in enumerate(run.steps) if not s.has_pose}
+    assert set(lost) == set(expect_lost), lost
+    assert all(phrase in lost[i] for i, phrase in expect_lost.items()), lost
+    lookup = ground_truth_lookup(TumSequence(seq_dir))
+    T_est, T_true, _ = relative_ground_truth(run.steps, lookup)
+    rot = np.degrees(np.linalg.norm(relative_pose_tangent_errors(T_est, T_true)[:, :3], axis=1))
+    assert rot.max() < 3.0, rot.max()
+
+
+@pytest.mark.slow
+def test_a_depth_image_of_another_instant_loses_its_frame(small_sample):
+    """Frame 9's depth image replaced by frame 17's (a depth image 0.27 s off, its file name kept):
+    a pair with it agrees on one motion in 39 of 228 matches only, on a pose 20 deg and 0.4 m off
+    the truth; such a pair left with a rotation s.d. of 1.1 deg and a quality below the flag (6-dof
+    NEES about 400) before the pair needed a majority. Now the frame is lost and the run goes on
+    from frame 8; no pair is off by 3 deg."""
+    import shutil
+
+    from conftest import frame_files
+
+    seq = small_sample(20)
+    shutil.copy(frame_files(seq, 17)[1], frame_files(seq, 9)[1])
+    _frame_lost_and_pairs_near_truth(seq, {9: "no consensus: 39 of 228 matches"})
+
+
+@pytest.mark.slow
+def test_a_frozen_colour_stream_loses_its_repeated_frames(small_sample):
+    """Frames 11-15 carry frame 10's colour image (a driver that repeats its last image; the depth
+    stays live): each is lost as a repeat of its reference frame, and frame 16 is matched to frame
+    10 over six intervals. Without the check the repeats are tracked as a camera at rest and frames
+    16-19 are lost for want of a consensus; before either check, a run whose frames 10-14 repeated
+    frame 9 took the motion from frame 9 to frame 15 as that of one interval (16 deg off, rotation
+    s.d. 1.1 deg, quality 5)."""
+    import shutil
+
+    from conftest import frame_files
+
+    seq = small_sample(20)
+    for i in range(11, 16):
+        shutil.copy(frame_files(seq, 10)[0], frame_files(seq, i)[0])
+    _frame_lost_and_pairs_near_truth(seq, {i: "repeats its reference frame's exactly" for i in range(11, 16)})
+
