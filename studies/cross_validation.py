@@ -662,6 +662,69 @@ def reference_table(data: Path) -> list[str]:
     return lines + [""]
 
 
+def frame_noise_table(data: Path) -> list[str]:
+    """Errors of single frames: the share of consecutive pairs' rotation errors that one frame's
+    error makes (it enters the pair ending there and, with the opposite sign, the next one), per
+    axis, for covo, OpenCV's dense RGB-D odometry and what the two share; against the reference's
+    jitter at the frames, and the frame-to-frame roughness of the ground truth and of covo's
+    trajectory at the frame stamps."""
+    import cv2
+
+    from covo_gtsam.geometry import invert_pose
+    from covo_gtsam.reference_noise import reference_jitter
+
+    lines = ["## Errors of single frames", "",
+             "An error of one frame's pose (the reference's, the camera's) enters the pair ending at that frame and, "
+             "with the opposite sign, the next pair: consecutive pairs' errors then anticorrelate, and "
+             "-E[e_k e_k+1] is that error's variance per frame. Per axis x / y / z, in degrees as s.d. per frame "
+             "(0 where the pairs' errors correlate positively): covo's consecutive pairs (default model, poses at "
+             "the stamps), OpenCV's dense RGB-D odometry on the same pairs (as in 'What an independent estimator "
+             "shares'), and what the two have in common (-E[covo e_k x OpenCV e_k+1], symmetrised); the reference's "
+             "sample jitter as metrics.json measures it, interpolated at the frames; and the roughness at the frame "
+             "stamps (`reference_jitter` with two neighbours on either side, applied to the ground truth at the "
+             "frames and to covo's trajectory, both at about 30 Hz, which leaves the same unfollowed motion in both).",
+             ""]
+    if not hasattr(cv2, "Odometry"):
+        return lines + [f"Not computed: OpenCV {cv2.__version__} has no `cv2.Odometry` (OpenCV 5's RGB-D odometry).",
+                        ""]
+    lines += ["| pairs | n | per frame: covo | OpenCV | common | reference jitter at the frames | roughness at the "
+              "frames: ground truth | covo's trajectory |", "|---|---|---|---|---|---|---|---|"]
+    seq = TumSequence(data / "tum" / RPY)
+    lookup = ground_truth_lookup(seq)
+    index = {t: i for i, t in enumerate(seq.timestamps)}
+    steps = every_nth(seq, OdometryConfig(), 1)
+    ours = {index[s.timestamp]: s.relative.matrix() for s in steps
+            if s.status == "tracked" and index.get(s.ref_timestamp) == index[s.timestamp] - 1}
+    theirs = opencv_pairs(seq, lookup)
+    ends = np.array(sorted(set(ours) & set(theirs)))
+    true = np.array([invert_pose(lookup[seq.timestamps[k - 1]]) @ lookup[seq.timestamps[k]] for k in ends])
+    x = np.rad2deg(relative_pose_tangent_errors(np.array([ours[k] for k in ends]), true)[:, :3])
+    y = np.rad2deg(relative_pose_tangent_errors(np.array([theirs[k] for k in ends]), true)[:, :3])
+    ref = reference_covariances(seq.gt_samples)(seq.timestamps[ends - 1], seq.timestamps[ends])
+    posed = {index[s.timestamp]: s.pose.matrix() for s in steps if s.has_pose}
+    frames = np.array(sorted(k for k in posed if seq.timestamps[k] in lookup))
+    first = lookup[seq.timestamps[frames[0]]] @ invert_pose(posed[frames[0]])  # covo's world in the reference's
+
+    def sd(v: np.ndarray) -> str:
+        return " / ".join(f"{np.sqrt(max(c, 0.0)):.3f}" for c in v)
+
+    for label, lo, hi in (("frames 1-119", 1, 119), ("frames 120-239", 120, 239), ("all", 1, 239)):
+        m = (ends >= lo) & (ends <= hi)
+        k = np.flatnonzero(m)
+        k = k[:-1][np.diff(ends[k]) == 1]  # pairs followed by the next pair
+        lag = {n: -np.mean(a[k] * b[k + 1], axis=0) for n, (a, b) in {"covo": (x, x), "cv": (y, y)}.items()}
+        common = -0.5 * (np.mean(x[k] * y[k + 1], axis=0) + np.mean(y[k] * x[k + 1], axis=0))
+        white = np.rad2deg(np.sqrt(np.diagonal(ref[m], axis1=1, axis2=2)[:, :3].mean(axis=0) / 2))
+        f = frames[(frames >= lo - 1) & (frames <= hi)]
+        t = seq.timestamps[f]
+        rough = [np.rad2deg(reference_jitter(t, P, 2)["rotation_rad"]) for P in
+                 (np.array([lookup[seq.timestamps[j]] for j in f]), np.array([first @ posed[j] for j in f]))]
+        lines.append(f"| {label} | {len(k)} | {sd(lag['covo'])} | {sd(lag['cv'])} | {sd(common)} | "
+                     f"{' / '.join(f'{v:.3f}' for v in white)} | {' / '.join(f'{v:.3f}' for v in rough[0])} | "
+                     f"{' / '.join(f'{v:.3f}' for v in rough[1])} |")
+    return lines + [""]
+
+
 def persistence_table(data: Path) -> list[str]:
     """How much larger the errors of chains of consecutive pairs are than independent pairs' errors
     would make them: mean squared chain error over the mean of the sum of its pairs' squared errors,
@@ -1105,8 +1168,8 @@ def main() -> None:
               + whole_sequence_table(args.data)
               + speed_term_table(args.data)
               + closure_table(args.data) + persistence_table(args.data) + drift_table(args.data)
-              + reference_table(args.data) + axes_table(args.data) + twist_change_table(args.data)
-              + independent_table(args.data))
+              + reference_table(args.data) + frame_noise_table(args.data) + axes_table(args.data)
+              + twist_change_table(args.data) + independent_table(args.data))
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
