@@ -20,6 +20,13 @@ from pathlib import Path
 from .errors import ConfigError, CovoError, CovoWarning
 from .interrupt import recorded_sigint
 
+def one_line(message: str) -> str:
+    """``message`` on one line: a library's multi-line text (e.g. a YAML parser's, with its caret
+    line) joined by ``"; "``, runs of spaces squeezed."""
+    parts = [" ".join(line.split()) for line in message.splitlines()]
+    return "; ".join(p for p in parts if p and p != "^")
+
+
 def load_config_file(path: str):
     """Deprecated: :func:`covo_gtsam.config.load_config` (removed from the command line module in
     the next release)."""
@@ -361,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
             gc.freeze()  # spares the interpreter's shutdown its collections over every object left
         return code
     except (CovoError, CovoWarning) as exc:  # a warning is raised where Python's options make warnings errors
-        print(f"covo: error: {exc}", file=sys.stderr)
+        print(f"covo: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return _interrupted()

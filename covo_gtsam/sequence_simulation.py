@@ -74,7 +74,7 @@ class SequenceSimulationResult:
     """Per tracked pair: errors (N, 6) against the truth between the stamps, reported covariances
     (N, 6, 6), ``flagged`` (N,), ``bad`` (N,: a frame of the pair is a bad frame), ``quality`` (N,);
     the frames' true stamp offsets (K,) and the clock offsets the odometry estimated (K,); the
-    fitted frame period (s); frames lost; each pair's frame-level error bases; each pair's frame
+    fitted frame period (s); frames lost (their count; ``lost_frames`` their indices); each pair's frame-level error bases; each pair's frame
     indices (N, 2), its true motion between the two *captures* (N, 4, 4) and the part of its error
     that the stamps' displacement from the captures makes, ``Log(T_capture^-1 T_stamps)`` (N, 6)."""
 
@@ -96,6 +96,8 @@ class SequenceSimulationResult:
     stamp_errors: np.ndarray | None = field(default=None, repr=False)
     #: which frames (K,) are bad frames
     bad_frames: np.ndarray | None = field(default=None, repr=False)
+    #: indices of the frames lost
+    lost_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, int), repr=False)
     #: each frame's stamped colour-depth offset (K,: depth minus colour stamp, s; the true one
     #: unless ``depth_period_s`` is set)
     depth_offsets: np.ndarray | None = field(default=None, repr=False)
@@ -110,13 +112,28 @@ class SequenceSimulationResult:
 
     @property
     def detection_rate(self) -> float:
-        """Share of pairs with a bad frame that were flagged (NaN without such pairs)."""
-        return float(np.mean(self.flagged[self.bad])) if self.bad.any() else float("nan")
+        """Share of the bad frames that were caught: lost, or flagged in every pair they are in (NaN
+        without bad frames; a bad frame in no pair and not lost is not caught)."""
+        bad = np.flatnonzero(self.bad_frames)
+        if not bad.size:
+            return float("nan")
+        lost = set(self.lost_frames.tolist())
+        caught = []
+        for k in bad:
+            mine = (self.frames == k).any(axis=1)
+            caught.append(k in lost or bool(mine.any() and self.flagged[mine].all()))
+        return float(np.mean(caught))
 
     @property
     def false_alarm_rate(self) -> float:
         """Share of pairs without a bad frame that were flagged."""
         return float(np.mean(self.flagged[~self.bad]))
+
+    @property
+    def false_loss_rate(self) -> float:
+        """Share of the frames that are not bad that were lost."""
+        good = ~self.bad_frames
+        return float(np.isin(np.flatnonzero(good), self.lost_frames).mean()) if good.any() else float("nan")
 
 
 class _Trajectory:
@@ -261,6 +278,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         flagged=np.array(flagged, bool), bad=np.array(pair_bad, bool), quality=np.array(quality),
         true_stamp_offsets=stamp_offsets, clock_offsets=np.array([s.clock_offset for s in steps]),
         clock_period_s=vo._clock.period_s, lost=sum(1 for s in steps if not s.has_pose), config=cfg,
+        lost_frames=np.array([k for k, s in enumerate(steps) if not s.has_pose], int),
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool),
         frames=np.array(frames, int).reshape(-1, 2), bad_frames=bad, capture_truth=T_captures,
         stamp_errors=relative_pose_tangent_errors(T_captures, np.array(T_stamps).reshape(-1, 4, 4)),

@@ -281,9 +281,10 @@ def bad_depth_table(data: Path) -> list[str]:
              "frame 1 or 3 later, the colour images and stamps left as they are; default settings. A pair is bad when "
              "either frame is. NEES under the reported covariance (a flagged pair's inflated), the largest over "
              "all six dimensions.", "",
-             "| depth from | bad pairs | flagged | false alarms | bad pairs' translation error RMS (mm) | "
+             "| depth from | bad frames caught (lost / flagged in every pair) | bad pairs left | flagged | false "
+             "alarms (other pairs flagged, other frames lost) | bad pairs' translation error RMS (mm) | "
              "bad pairs: ANEES t / r, largest 6-dof NEES | the pairs after (from the bad frame's next frame): "
-             "ANEES t / r | other pairs: ANEES t / r |", "|---|---|---|---|---|---|---|---|"]
+             "ANEES t / r | other pairs: ANEES t / r |", "|---|---|---|---|---|---|---|---|---|"]
     for later in (1, 3):
         vo = VisualOdometry(seq.camera_name, OdometryConfig())
         steps = []
@@ -305,10 +306,15 @@ def bad_depth_table(data: Path) -> list[str]:
         n6 = np.einsum("ni,nij,nj->n", err, np.linalg.inv(covs), err)
         rms = 1e3 * np.sqrt(np.mean(np.sum(err[is_bad, 3:] ** 2, axis=1)))
         other = ~is_bad & ~after
-        lines.append(f"| {1e3 * later / 30:.0f} ms later | {is_bad.sum()} | {100 * flagged[is_bad].mean():.0f} % | "
-                     f"{100 * flagged[~is_bad].mean():.1f} % | {rms:.0f} | {nt[is_bad].mean():.2f} / "
-                     f"{nr[is_bad].mean():.2f}, {n6[is_bad].max():.1f} | {nt[after].mean():.2f} / "
-                     f"{nr[after].mean():.2f} ({after.sum()}) | {nt[other].mean():.2f} / {nr[other].mean():.2f} |")
+        lost = {i for i, s in enumerate(steps) if not s.has_pose}
+        in_pair = [(ref == b) | (cur == b) for b in sorted(bad)]
+        flagged_all = sum(b not in lost and m.any() and flagged[m].all() for b, m in zip(sorted(bad), in_pair))
+        lines.append(f"| {1e3 * later / 30:.0f} ms later | {len(lost & bad) + flagged_all} of {len(bad)} "
+                     f"({len(lost & bad)} / {flagged_all}) | {is_bad.sum()} | {100 * flagged[is_bad].mean():.0f} % | "
+                     f"{100 * flagged[~is_bad].mean():.1f} %, {len(lost - bad)} | {rms:.0f} | "
+                     f"{nt[is_bad].mean():.2f} / {nr[is_bad].mean():.2f}, {n6[is_bad].max():.1f} | "
+                     f"{nt[after].mean():.2f} / {nr[after].mean():.2f} ({after.sum()}) | "
+                     f"{nt[other].mean():.2f} / {nr[other].mean():.2f} |")
     return lines + [""]
 
 

@@ -516,3 +516,15 @@ def test_chain_samples_need_exactly_one_moving_link():
     np.testing.assert_allclose(poses, [A @ M[k] @ C for k in (1, 0, 2)], atol=1e-9)  # parent first
     assert _chain_samples([link([0.2, 0.1], M[:2]), link([0.0, 1.0], M[2:])]) is None  # two moving links
     assert _chain_samples([link([0.0], [A], static=True)]) is None  # none
+
+
+def test_a_library_error_over_several_lines_is_one_line(tmp_path, capsys):
+    """A ROS 2 bag folder whose metadata.yaml does not parse: the YAML parser's message runs over
+    several lines (with a caret line); covo still ends with exit 2 and one line."""
+    bag = tmp_path / "broken_bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text(": : [\n")
+    capsys.readouterr()
+    assert main(["run", str(bag), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("covo: error: ") and "metadata.yaml" in err
