@@ -218,6 +218,8 @@ class RunEvaluation:
     #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
     self_calibration: dict | None = None
+    #: the camera the run used (intrinsics, distortion, image size, depth scale), set by the pipeline
+    camera: dict | None = None
     #: the covo-gtsam version that made the run, set by the pipeline
     version: str | None = None
     #: translational (m) and rotational (rad) RPE of each frame pair, per interval in frames
@@ -284,6 +286,8 @@ class RunEvaluation:
         out["without_reference_jitter"] = self.without_reference_jitter
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
+        if self.camera is not None:
+            out["camera"] = self.camera
         if self.version is not None:
             out["version"] = self.version
         return copy.deepcopy(out)

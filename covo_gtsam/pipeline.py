@@ -403,6 +403,10 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
 
     evaluation = evaluate_run(history.steps, seq, elapsed)
     evaluation.self_calibration = vo.self_calibration()
+    cam = vo.camera
+    evaluation.camera = {"name": cam.name, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                         "distortion": list(cam.dist), "width": cam.width, "height": cam.height,
+                         "depth_scale": config.sensor.depth_scale}
     evaluation.version = __version__
     metrics = evaluation.to_dict()
     write_json(out / "metrics.json", metrics)

@@ -359,7 +359,7 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
     written = json.loads((sample_run.out_dir / "metrics.json").read_text())
     keys = set(written)
     for name in ("rpe_1", "ate", "chains", "nees_breakdown", "reference_jitter", "reference_axes",
-                 "twist_change_response", "self_calibration"):
+                 "twist_change_response", "self_calibration", "camera"):
         assert isinstance(written[name], dict), name  # the sample run has them all
         keys |= set(written[name])
     from covo_gtsam.nees_breakdown import window_statistics
@@ -372,3 +372,9 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
     listed = {name for row in re.findall(r"^\| (`[^|]+) \|", page, flags=re.M)
               for name in re.findall(r"`([a-z_0-9]+)`", row)}
     assert listed and sorted(listed - set(written) - set(written["self_calibration"])) == []
+    # the camera it records is the one it ran with: the fr1 preset, named by the folder
+    from covo_gtsam.camera import Camera
+
+    fr1 = Camera.preset("fr1")
+    assert written["camera"] == {"name": "fr1", "fx": fr1.fx, "fy": fr1.fy, "cx": fr1.cx, "cy": fr1.cy,
+                                 "distortion": list(fr1.dist), "width": 640, "height": 480, "depth_scale": 5000.0}

@@ -229,6 +229,16 @@ def test_no_groundtruth_and_unknown_camera(tmp_path):
     assert TumSequence(seq.path, camera=sentinel).camera is sentinel
 
 
+def test_a_folder_name_naming_two_cameras_is_no_guess(tmp_path):
+    from covo_gtsam.datasets.tum import camera_name_from_path
+
+    assert camera_name_from_path("rgbd_dataset_freiburg3_from_freiburg1") is None
+    assert camera_name_from_path("freiburg3_freiburg3_copy") == "fr3"
+    seq = TumSequence(make_sequence(tmp_path, name="rgbd_freiburg3_from_freiburg1", gt=False))
+    with pytest.raises(DatasetError, match="it names freiburg1 and freiburg3.*--camera"):
+        seq.camera  # noqa: B018 (the property raises)
+
+
 def test_missing_folder(tmp_path):
     with pytest.raises(DatasetError, match="nope.*does not exist"):
         TumSequence(tmp_path / "nope")

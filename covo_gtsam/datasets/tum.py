@@ -179,9 +179,10 @@ def interpolate_poses(
 
 
 def camera_name_from_path(path: str | os.PathLike) -> str | None:
-    """``"fr1"``/``"fr2"``/``"fr3"`` from a folder name containing ``freiburg1/2/3``, else None."""
-    m = re.search(r"freiburg([123])", Path(path).name, flags=re.IGNORECASE)
-    return f"fr{m.group(1)}" if m else None
+    """``"fr1"``/``"fr2"``/``"fr3"`` from a folder name containing ``freiburg1/2/3``, else None
+    (also when it names two of them, e.g. ``freiburg3_from_freiburg1``: no guess)."""
+    names = {f"fr{n}" for n in re.findall(r"freiburg([123])", Path(path).name, flags=re.IGNORECASE)}
+    return names.pop() if len(names) == 1 else None
 
 
 class TumSequence:
@@ -285,8 +286,10 @@ class TumSequence:
         """The camera given to the constructor, else the ``camera_name`` preset."""
         if self._camera is None:
             if self.camera_name is None:
+                named = sorted(set(re.findall(r"freiburg[123]", self.path.name, flags=re.IGNORECASE)))
+                why = f"it names {' and '.join(named)}" if named else "no 'freiburg1/2/3'"
                 raise DatasetError(
-                    f"{self.path}: cannot tell the camera from the folder name (no 'freiburg1/2/3'); "
+                    f"{self.path}: cannot tell the camera from the folder name ({why}); "
                     "pass a camera (CLI: --camera)"
                 )
             from ..camera import Camera
