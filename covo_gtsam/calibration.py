@@ -422,9 +422,24 @@ def fit_sensor_terms(errors: np.ndarray, point_covs: np.ndarray, fit_correlation
         if not res.fun < best.fun - 1e-9:
             break
         best = res
-    kappa, s_r, s_t, sig = params(best.x)
-    return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-best.fun), len(errors),
+    x = _zero_where_flat(cost, best.x, first=int(fit_correlation_factor))
+    kappa, s_r, s_t, sig = params(x)
+    return SensorTerms(float(kappa), float(np.rad2deg(s_r)), float(s_t), float(-cost(x)), len(errors),
                        {**{k: float(v) for k, v in sig.items()}, **{k: 0.0 for k in dead}})
+
+
+def _zero_where_flat(cost, x: np.ndarray, first: int) -> np.ndarray:
+    """``x`` (logs of the fitted sigmas) with each sigma from index ``first`` on set to exactly 0
+    (log -inf) where the cost per pair cannot tell it from 0 (within 1e-9): a fit driven to the
+    boundary stops at values such as 1e-60 s, which mean none."""
+    x = np.array(x, dtype=float)
+    base = cost(x)
+    for i in range(first, len(x)):
+        trial = x.copy()
+        trial[i] = -np.inf
+        if cost(trial) <= base + 1e-9:
+            x = trial
+    return x
 
 
 def span_fit_pairs(span_bases: np.ndarray) -> np.ndarray:

@@ -20,6 +20,10 @@ from pathlib import Path
 from .errors import ConfigError, CovoError, CovoWarning
 from .interrupt import recorded_sigint
 
+#: ``covo calibrate`` warns when it fits the terms on fewer consecutive pairs than this
+FEW_CALIBRATION_PAIRS = 100
+
+
 def one_line(message: str) -> str:
     """``message`` on one line: a library's multi-line text (e.g. a YAML parser's, with its caret
     line) joined by ``"; "``, runs of spaces squeezed."""
@@ -304,6 +308,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         write_json(out / "calibration.json", summary)
         if no_jitter:
             print(no_jitter, file=sys.stderr)
+        if fit.pairs < FEW_CALIBRATION_PAIRS:
+            print(f"covo: warning: only {fit.pairs} consecutive pairs with ground truth: terms fitted on so few are "
+                  f"uncertain (the defaults rest on 118)",
+                  file=sys.stderr)
         anees_t, anees_r = summary["per_point_model_anees"]
         anees = (f"ANEES t {anees_t:.2f} r {anees_r:.2f} (3 = consistent)"
                  if anees_t is not None and anees_r is not None else "no ANEES (see per_point_run/metrics.json)")

@@ -311,6 +311,27 @@ def test_fit_recovers_frame_level_terms():
         fit_sensor_terms(e, P, bases={"timing": bases["timing"][:5]})
 
 
+@pytest.mark.slow
+def test_a_term_the_errors_do_not_have_is_fitted_to_exactly_zero():
+    """Errors drawn with the depth-scale term alone (no timing error): the fit reports the timing
+    term as exactly 0, not as the 1e-60 s where Nelder-Mead stops on the log scale, and keeps the
+    depth-scale term; its log-likelihood is that of the reported terms."""
+    from covo_gtsam.calibration import log_likelihood, timing_covariance
+
+    rng = np.random.default_rng(8)
+    n = 1500
+    P = _random_spd(rng, n) * rng.uniform(0.2, 3.0, size=(n, 1, 1)) * 0.02
+    b = rng.normal(size=(n, 6)) * np.array([0.1] * 3 + [2.0] * 3)
+    bases = {"timing": timing_covariance(rng.normal(size=(n, 2, 6)) * np.array([1.0] * 3 + [0.3] * 3)),
+             "depth_scale": np.einsum("ni,nj->nij", b, b)}
+    C = sensor_covariance(P, 1.0, 0.0, 0.0, 1, bases, {"timing": 0.0, "depth_scale": 0.002})
+    e = np.einsum("nij,nj->ni", np.linalg.cholesky(C), rng.normal(size=(n, 6)))
+    fit = fit_sensor_terms(e, P, False, bases=bases)
+    assert fit.sigmas["timing"] == 0.0
+    assert fit.sigmas["depth_scale"] == pytest.approx(0.002, rel=0.1)
+    assert fit.log_likelihood == pytest.approx(log_likelihood(e, fit.covariances(P, bases)), abs=1e-9)
+
+
 def test_fit_without_the_rotation_frame_term_holds_it_at_zero():
     """Errors drawn without a rotation frame term but with a timing term: the fit that holds ``s_r``
     at 0 gives back the timing term and kappa 1; errors drawn with a frame term are then less likely
