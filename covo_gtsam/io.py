@@ -71,9 +71,12 @@ def data_lines(path: Path):
     try:
         # as editors write them: a UTF-8 byte-order mark, CRLF or CR line ends; bytes that are not
         # UTF-8 (e.g. Latin-1 file names) are kept as the file system's surrogate escapes
-        lines = Path(path).read_text(encoding="utf-8-sig", errors="surrogateescape").splitlines()
+        text = Path(path).read_text(encoding="utf-8-sig", errors="surrogateescape")
     except (OSError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from exc
+    if "\x00" in text:  # UTF-16 text (every other byte NUL for ASCII) or a binary file
+        raise DatasetError(f"{path}: not a text file in UTF-8 (it holds NUL bytes: UTF-16, or not text)")
+    lines = text.splitlines()
     for no, line in enumerate(lines, 1):
         s = line.strip()
         if s and not s.startswith("#"):

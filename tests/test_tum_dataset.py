@@ -397,3 +397,18 @@ def test_frames_restricts_a_sequence(sample_dir):
     for bad in ((5, 5), (-1, 3), (0, 41), (2.0, 5)):
         with pytest.raises(ConfigError):
             seq.frames(*bad)
+
+
+def test_file_lists_that_are_not_files_or_not_utf8_say_so(tmp_path):
+    seq = make_sequence(tmp_path, name="rgbd_dataset_freiburg1_x")
+    text = (seq / "rgb.txt").read_text()
+    (seq / "rgb.txt").write_text(text, encoding="utf-16")  # as some Windows editors save it
+    with pytest.raises(DatasetError, match=r"rgb.txt: not a text file in UTF-8 \(it holds NUL bytes: UTF-16"):
+        TumSequence(seq)
+    (seq / "rgb.txt").unlink()
+    (seq / "rgb.txt").mkdir()
+    with pytest.raises(DatasetError, match=r"rgb.txt: is not a file \(a TUM sequence folder"):
+        TumSequence(seq)
+    (seq / "rgb.txt").rmdir()
+    with pytest.raises(DatasetError, match=r"rgb.txt: missing \(a TUM sequence folder"):
+        TumSequence(seq)

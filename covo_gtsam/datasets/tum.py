@@ -226,8 +226,10 @@ class TumSequence:
             raise DatasetError(f"{self.path}: sequence folder does not exist")
         self.name = self.path.name
         for f in ("rgb.txt", "depth.txt"):
-            if not (self.path / f).is_file():
-                raise DatasetError(f"{self.path / f}: missing (a TUM sequence folder has rgb.txt and depth.txt)")
+            problem = file_problem(self.path / f)
+            if problem is not None:
+                what = "missing" if problem == "does not exist" else problem
+                raise DatasetError(f"{self.path / f}: {what} (a TUM sequence folder has rgb.txt and depth.txt)")
         rgb_t, rgb_n = read_file_list(self.path / "rgb.txt")
         dep_t, dep_n = read_file_list(self.path / "depth.txt")
         for name, stamps in (("rgb.txt", rgb_t), ("depth.txt", dep_t)):
