@@ -223,7 +223,8 @@ class TwistChanges:
     :func:`known_change_basis`, carried on over the pair, plus ``m^2`` times the basis over the ``m``
     intervals since); rotation block only (a translation change of the twist is below its noise). The
     mean is clipped to positive semidefinite (clipping each term instead would leave most of the
-    noise in). Zero until a change has been seen.
+    noise in). Zero until a change has been seen (:attr:`seen`; the odometry then takes the change
+    as large as the twist itself, in any direction: docs/derivation.md, "The history's length").
 
     The mean gives the changes' size and their direction over the window. Where the motion keeps
     its axis (fr1_rpy turns about one axis for seconds) the direction carries over to the next
@@ -255,6 +256,11 @@ class TwistChanges:
             self._mean = np.zeros((6, 6))
             return
         self._mean = _positive_part(self._sum / len(self._changes))
+
+    @property
+    def seen(self) -> bool:
+        """Whether the window holds a change."""
+        return bool(self._changes)
 
     def basis(self) -> np.ndarray:
         """6x6 basis (tangent ``[omega, v]``, (rad/s)^2 blocks) for the next pair."""

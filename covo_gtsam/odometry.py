@@ -622,6 +622,11 @@ class VisualOdometry(DeprecatedStepAccess):
         # frame was measured: it goes on k / (k - m) times as far over the pair, and the change since
         # the last posed frame (m intervals) may also be new, as the pairs before say
         history = self._twist_changes.basis()
+        if not self._twist_changes.seen:  # no change yet: it may be as large as the twist, any way
+            w = _trusted_velocity(ref_step)
+            w = velocity if w is None else w
+            history = np.zeros((6, 6))
+            history[:3, :3] = np.eye(3) * float(w[:3] @ w[:3]) / 3.0
         known = self._known_twist_change(T, ref_step, timestamp)
         k = self.config.sensor.frame_intervals(dt)
         if known is None:

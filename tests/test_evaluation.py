@@ -32,7 +32,7 @@ def test_metrics_json_is_the_result_object_serialised(sample_run):
     ev = sample_run.evaluation
     assert isinstance(ev, RunEvaluation)
     written = json.loads((sample_run.out_dir / "metrics.json").read_text())
-    assert list(written) == [*BASE_KEYS, *GT_KEYS, "self_calibration", "version"]
+    assert list(written) == [*BASE_KEYS, *GT_KEYS, "self_calibration", "camera", "version"]
     assert written == json.loads(json.dumps(ev.to_dict())) == json.loads(json.dumps(sample_run.metrics))
     assert ev.to_dict() is not ev.to_dict() and ev.to_dict()["lost"] is not ev.lost  # copies
 
