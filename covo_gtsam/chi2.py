@@ -15,6 +15,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
+    "CHI2_2_99",
     "CHI2_3_99",
     "CHI2_3_975",
     "anees_band",
@@ -139,6 +140,9 @@ def anees_band(pairs: int, dof: int = 3) -> tuple[float, float]:
 #: chi2(3) 97.5 % quantile (9.3484): upper bound of a consistent 3-dof NEES; ``covo run`` reports
 #: the share of NEES above it (``chi2_3_975`` in ``metrics.json``).
 CHI2_3_975 = chi2_quantile(0.975, 3)
+#: chi2(2) 99 % quantile (-2 ln 0.01 = 9.21034), rounded to 9.2103: the gate of a reprojection
+#: residual (:func:`covo_gtsam.integrity.depth_free_consensus`).
+CHI2_2_99 = 9.2103
 #: chi2(3) 99 % quantile (11.34487), rounded to 11.345: default gate of the rigid RANSAC's
 #: Mahalanobis inlier test.
 CHI2_3_99 = 11.345
@@ -152,6 +156,7 @@ CHI2_6_MEDIAN = 5.3481
 #: decimals kept; None for full precision).
 SOURCES = {
     "CHI2_3_975": (0.975, 3, False, None),
+    "CHI2_2_99": (0.99, 2, False, 4),
     "CHI2_3_99": (0.99, 3, False, 3),
     "SQRT_CHI2_3_95": (0.95, 3, True, 4),
     "CHI2_6_MEDIAN": (0.5, 6, False, 4),

@@ -26,10 +26,11 @@ import bisect
 from collections import deque
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
-from .chi2 import CHI2_6_MEDIAN
-from .geometry import skew
+from .chi2 import CHI2_2_99, CHI2_6_MEDIAN
+from .geometry import invert_pose, make_pose, skew
 
 #: Degrees of freedom of the integrity statistic.
 INTEGRITY_DOF = 6
@@ -148,6 +149,46 @@ def depth_free_check(T: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref:
     # the bearings cannot see, away from both)
     q = float(max(d_f @ np.linalg.solve(C_f, d_f), d_b @ np.linalg.solve(C_b, d_b)))
     return IntegrityResult(q, d_f, d_b, C_f, C_b)
+
+
+#: Hypotheses of each perspective-n-point RANSAC of :func:`depth_free_consensus` at most (OpenCV's
+#: adaptive stop ends it earlier): 99.9 % confidence of an all-inlier 5-point sample down to an
+#: inlier share of about 0.3.
+PNP_ITERATIONS = 3000
+
+
+def depth_free_consensus(X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray, Q_cur: np.ndarray,
+                         fx: float, fy: float, pixel_sigma: float) -> int:
+    """How many of a pair's matches agree on one motion without one frame's depth: the larger inlier
+    count of two perspective-n-point RANSACs (OpenCV's ``solvePnPRansac``), forward (the reference
+    points ``X_ref`` against the current bearings; the current depth unused) and backward (``X_cur``
+    against the reference bearings). Each solution's inliers are counted with the depth-free check's
+    reprojection model (pixel noise ``pixel_sigma`` plus the source point's projected covariance,
+    :func:`reprojection_system`) at chi2(2)'s 99 % gate, as the rigid RANSAC counts its own with the
+    3-D covariances at chi2(3)'s. Points (N, 3) of all matches in metres, covariances (N, 3, 3) m^2,
+    ``fx, fy`` px. 0 with fewer than 5 matches or where no solution is found.
+
+    A depth image that belongs to another instant leaves few matches agreeing on one rigid motion in
+    3-D but keeps them agreeing with the other frame's depth through the bearings; a fast motion
+    (blur, mismatches) lowers both counts alike."""
+    if len(X_ref) < 5:
+        return 0
+    K = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [0.0, 0.0, 1.0]])
+    threshold = float(np.sqrt(2.0 * CHI2_2_99) * pixel_sigma)  # the two keypoints' pixel noise
+    best = 0
+    for forward, X_src, Q_src, X_dst in ((True, X_ref, Q_ref, X_cur), (False, X_cur, Q_cur, X_ref)):
+        ok, rvec, tvec, _ = cv2.solvePnPRansac(
+            np.ascontiguousarray(X_src, dtype=np.float64), np.ascontiguousarray(_pixels(X_dst, fx, fy)), K, None,
+            iterationsCount=PNP_ITERATIONS, reprojectionError=threshold, confidence=0.999)
+        if not ok:
+            continue
+        T_dst_src = make_pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, dtype=float).reshape(3))
+        T = invert_pose(T_dst_src) if forward else T_dst_src  # T_ref,cur
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r, _, S = reprojection_system(T, X_src, Q_src, X_dst, fx, fy, pixel_sigma, forward)
+            d2 = np.einsum("ni,nij,nj->n", r, _inv2(S), r)
+        best = max(best, int(np.count_nonzero(np.isfinite(d2) & (d2 < CHI2_2_99))))
+    return best
 
 
 class IntegrityScale:

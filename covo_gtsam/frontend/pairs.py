@@ -38,6 +38,8 @@ class PointPairs:
         method: the outlier rejection used.
         T_init: 4x4 ``T_ref,cur`` of the rigid3d RANSAC refit (the prior, if any, for other
             methods); a good ``initial`` for :func:`covo_gtsam.estimator.estimate_relative_pose`.
+        match_ref, match_cur: (num_matches,) indices into the frames' features of every match,
+            before outlier rejection.
     """
 
     X_ref: np.ndarray
@@ -53,6 +55,8 @@ class PointPairs:
     distances: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))
     method: str = "none"
     T_init: np.ndarray | None = None
+    match_ref: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
+    match_cur: np.ndarray = field(default_factory=lambda: np.zeros(0, np.intp))
 
     def __len__(self) -> int:
         return int(self.X_ref.shape[0])
@@ -131,5 +135,5 @@ def _matched_pairs(ref: FrameData, cur: FrameData, cfg: FrontendConfig, prior: n
         uv_ref=ref.features.uv[idx_ref[keep]], uv_cur=cur.features.uv[idx_cur[keep]],
         idx_ref=idx_ref[keep], idx_cur=idx_cur[keep], num_matches=num_matches,
         num_inliers=int(np.count_nonzero(keep)), distances=dist[keep], method=cfg.outlier_rejection,
-        T_init=T_init,
+        T_init=T_init, match_ref=idx_ref, match_cur=idx_cur,
     )
