@@ -152,42 +152,60 @@ def depth_free_check(T: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref:
 
 
 #: Hypotheses of each perspective-n-point RANSAC of :func:`depth_free_consensus` at most (OpenCV's
-#: adaptive stop ends it earlier): 99.9 % confidence of an all-inlier 5-point sample down to an
-#: inlier share of about 0.3.
-PNP_ITERATIONS = 3000
+#: adaptive stop ends it earlier): 99.9 % confidence of an all-inlier 4-point sample down to an
+#: inlier share of about 0.2.
+PNP_ITERATIONS = 4000
+
+
+def reprojection_consensus(T: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray, Q_cur: np.ndarray,
+                           fx: float, fy: float, pixel_sigma: float) -> int:
+    """How many matches the pose ``T`` (4x4 T_ref,cur) explains through their bearings with one frame's
+    depth: the larger count of forward (``X_ref`` projected into the current image) and backward
+    (``X_cur`` into the reference image) reprojections with ``r^T S^-1 r`` below chi2(2)'s 99 %
+    quantile, ``S`` the depth-free check's residual covariance (pixel noise ``pixel_sigma`` plus the
+    source point's projected covariance, :func:`reprojection_system`); a point that lands behind
+    the camera does not count. Points (N, 3) in metres, covariances (N, 3, 3) m^2, ``fx, fy`` px."""
+    T = np.asarray(T, dtype=float)
+    best = 0
+    for forward, X_src, Q_src, X_dst in ((True, X_ref, Q_ref, X_cur), (False, X_cur, Q_cur, X_ref)):
+        Y = (X_src - T[:3, 3]) @ T[:3, :3] if forward else X_src @ T[:3, :3].T + T[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            r, _, S = reprojection_system(T, X_src, Q_src, X_dst, fx, fy, pixel_sigma, forward)
+            d2 = np.einsum("ni,nij,nj->n", r, _inv2(S), r)
+        best = max(best, int(np.count_nonzero((Y[:, 2] > 0) & np.isfinite(d2) & (d2 < CHI2_2_99))))
+    return best
 
 
 def depth_free_consensus(X_ref: np.ndarray, X_cur: np.ndarray, Q_ref: np.ndarray, Q_cur: np.ndarray,
                          fx: float, fy: float, pixel_sigma: float) -> int:
-    """How many of a pair's matches agree on one motion without one frame's depth: the larger inlier
-    count of two perspective-n-point RANSACs (OpenCV's ``solvePnPRansac``), forward (the reference
-    points ``X_ref`` against the current bearings; the current depth unused) and backward (``X_cur``
-    against the reference bearings). Each solution's inliers are counted with the depth-free check's
-    reprojection model (pixel noise ``pixel_sigma`` plus the source point's projected covariance,
-    :func:`reprojection_system`) at chi2(2)'s 99 % gate, as the rigid RANSAC counts its own with the
-    3-D covariances at chi2(3)'s. Points (N, 3) of all matches in metres, covariances (N, 3, 3) m^2,
-    ``fx, fy`` px. 0 with fewer than 5 matches or where no solution is found.
+    """How many of a pair's matches agree on one motion without one frame's depth: the larger
+    :func:`reprojection_consensus` of two perspective-n-point RANSAC poses (OpenCV's
+    ``solvePnPRansac`` with 4-point AP3P samples), forward (the reference points ``X_ref`` against
+    the current bearings; the current depth unused) and backward (``X_cur`` against the reference
+    bearings). Points (N, 3) of all matches in metres, covariances (N, 3, 3) m^2, ``fx, fy`` px. 0
+    with fewer than 5 matches or where no solution is found.
 
     A depth image that belongs to another instant leaves few matches agreeing on one rigid motion in
-    3-D but keeps them agreeing with the other frame's depth through the bearings; a fast motion
-    (blur, mismatches) lowers both counts alike."""
+    3-D, on a wrong one, while the other frame's depth and the bearings agree on the true motion;
+    a fast motion (blur, mismatches) lowers the counts of both alike, on the same motion."""
     if len(X_ref) < 5:
         return 0
     K = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [0.0, 0.0, 1.0]])
     threshold = float(np.sqrt(2.0 * CHI2_2_99) * pixel_sigma)  # the two keypoints' pixel noise
     best = 0
-    for forward, X_src, Q_src, X_dst in ((True, X_ref, Q_ref, X_cur), (False, X_cur, Q_cur, X_ref)):
-        ok, rvec, tvec, _ = cv2.solvePnPRansac(
-            np.ascontiguousarray(X_src, dtype=np.float64), np.ascontiguousarray(_pixels(X_dst, fx, fy)), K, None,
-            iterationsCount=PNP_ITERATIONS, reprojectionError=threshold, confidence=0.999)
+    for forward, X_src, X_dst in ((True, X_ref, X_cur), (False, X_cur, X_ref)):
+        try:
+            ok, rvec, tvec, _ = cv2.solvePnPRansac(
+                np.ascontiguousarray(X_src, dtype=np.float64), np.ascontiguousarray(_pixels(X_dst, fx, fy)), K, None,
+                iterationsCount=PNP_ITERATIONS, reprojectionError=threshold, confidence=0.999,
+                flags=cv2.SOLVEPNP_AP3P)
+        except cv2.error:  # a degenerate sample set: no solution
+            continue
         if not ok:
             continue
         T_dst_src = make_pose(cv2.Rodrigues(rvec)[0], np.asarray(tvec, dtype=float).reshape(3))
         T = invert_pose(T_dst_src) if forward else T_dst_src  # T_ref,cur
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r, _, S = reprojection_system(T, X_src, Q_src, X_dst, fx, fy, pixel_sigma, forward)
-            d2 = np.einsum("ni,nij,nj->n", r, _inv2(S), r)
-        best = max(best, int(np.count_nonzero(np.isfinite(d2) & (d2 < CHI2_2_99))))
+        best = max(best, reprojection_consensus(T, X_ref, X_cur, Q_ref, Q_cur, fx, fy, pixel_sigma))
     return best
 
 

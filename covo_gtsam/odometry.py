@@ -29,7 +29,7 @@ from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_cha
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
-from .integrity import IntegrityScale, depth_free_check, depth_free_consensus, per_span
+from .integrity import IntegrityScale, depth_free_check, depth_free_consensus, per_span, reprojection_consensus
 from .noise import blur_covariances, depth_lookup_variance
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
 from .steps import POSED_STATUSES, DeprecatedStepAccess, OdometryStep, StepHistory, StepStatus
@@ -47,11 +47,11 @@ REWEIGHT_TOL_RAD = 1e-2
 #: What a lost frame's reason says when no pixel of its depth image is in the depth range.
 EMPTY_DEPTH = "the depth image has no depth"
 #: A pair is lost when fewer than this share of its matches agree on one rigid motion in 3-D (the
-#: outlier rejection's inliers) and fewer than this share of those that agree with one frame's depth
-#: left out (:func:`~covo_gtsam.integrity.depth_free_consensus`): a majority. A depth image that
-#: belongs to another instant leaves a small consensus in 3-D on a grossly wrong motion (17 % on a
-#: wrong pose of 20 deg) while the other frame's depth and the bearings still agree; a fast motion
-#: lowers both alike (docs/derivation.md, "The integrity check").
+#: outlier rejection's inliers) and fewer than this share of those that agree on one motion with one
+#: frame's depth left out (:func:`~covo_gtsam.integrity.depth_free_consensus`): a majority. A depth
+#: image that belongs to another instant leaves a small consensus in 3-D on a grossly wrong motion
+#: (17 % on a wrong pose of 20 deg) while the other frame's depth and the bearings agree on the true
+#: one; a fast motion lowers both counts alike (docs/derivation.md, "The integrity check").
 MIN_CONSENSUS = 0.5
 
 
@@ -357,7 +357,7 @@ class VisualOdometry(DeprecatedStepAccess):
                            f"{self._no_depth_note(frame)}")
             return step
         if pairs.num_inliers < MIN_CONSENSUS * pairs.num_matches:
-            agreed = self._depth_free_consensus(ref, frame, pairs)
+            agreed = self._bearings_consensus(ref, frame, pairs)
             if pairs.num_inliers < MIN_CONSENSUS * agreed:
                 step.reason = (f"no consensus: {pairs.num_inliers} of its {pairs.num_matches} matches agree on one "
                                f"motion in 3-D, {agreed} with one frame's depth left out (fewer than "
@@ -398,11 +398,17 @@ class VisualOdometry(DeprecatedStepAccess):
         self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         return step
 
-    def _depth_free_consensus(self, ref: FrameData, frame: FrameData, pairs: PointPairs) -> int:
-        """:func:`~covo_gtsam.integrity.depth_free_consensus` of all of the pair's matches."""
+    def _bearings_consensus(self, ref: FrameData, frame: FrameData, pairs: PointPairs) -> int:
+        """How many of all of the pair's matches agree on one motion with one frame's depth left out:
+        :func:`~covo_gtsam.integrity.depth_free_consensus`, or the matches whose bearings the
+        outlier rejection's own motion explains that way
+        (:func:`~covo_gtsam.integrity.reprojection_consensus`) where that is more (the perspective-n-point
+        RANSAC found less or nothing)."""
         i, j = pairs.match_ref, pairs.match_cur
-        return depth_free_consensus(ref.points[i], frame.points[j], ref.covariances[i], frame.covariances[j],
-                                    self.camera.fx, self.camera.fy, self.config.noise.pixel_sigma)
+        points = (ref.points[i], frame.points[j], ref.covariances[i], frame.covariances[j], self.camera.fx,
+                  self.camera.fy, self.config.noise.pixel_sigma)
+        explained = 0 if pairs.T_init is None else reprojection_consensus(pairs.T_init, *points)
+        return max(explained, depth_free_consensus(*points))
 
     def _corrected_for_drift(self, step: OdometryStep, res: RelativePoseResult, check, b: np.ndarray, dt: float
                              ) -> RelativePoseResult:
