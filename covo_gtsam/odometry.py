@@ -400,10 +400,10 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _bearings_consensus(self, ref: FrameData, frame: FrameData, pairs: PointPairs) -> int:
         """How many of all of the pair's matches agree on one motion with one frame's depth left out:
-        :func:`~covo_gtsam.integrity.depth_free_consensus`, or the matches whose bearings the
-        outlier rejection's own motion explains that way
-        (:func:`~covo_gtsam.integrity.reprojection_consensus`) where that is more (the perspective-n-point
-        RANSAC found less or nothing)."""
+        :func:`~covo_gtsam.integrity.depth_free_consensus`, or the matches whose bearings the rigid
+        RANSAC's motion (``pairs.T_init``; another outlier rejection's prediction, if any) explains that
+        way (:func:`~covo_gtsam.integrity.reprojection_consensus`) where that is more (the
+        perspective-n-point RANSACs found fewer or nothing)."""
         i, j = pairs.match_ref, pairs.match_cur
         points = (ref.points[i], frame.points[j], ref.covariances[i], frame.covariances[j], self.camera.fx,
                   self.camera.fy, self.config.noise.pixel_sigma)
