@@ -21,6 +21,7 @@ from .covariance import compose_chains
 from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
 from .geometry import invert_pose
+from .integrity import MIN_CONSENSUS
 from .metrics import anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
@@ -186,6 +187,9 @@ class RunEvaluation:
     mean_pairs: float
     #: ``{"timestamp", "ref_timestamp", "quality"}`` of each pair the integrity check flagged
     flagged: list[dict]
+    #: tracked pairs whose matches agreed on one motion in 3-D below a majority, kept because their
+    #: colour images agreed about as little (a fast motion, blur; :data:`~covo_gtsam.integrity.MIN_CONSENSUS`)
+    weak_consensus_pairs: int = 0
     has_ground_truth: bool = False
     #: trajectory segments (a restart starts a new one) with ground truth
     segments: int = 0
@@ -267,6 +271,7 @@ class RunEvaluation:
             "mean_pairs": self.mean_pairs,
             "flagged_pairs": len(self.flagged),
             "flagged": self.flagged,
+            "weak_consensus_pairs": self.weak_consensus_pairs,
         }
         # without ground truth the same keys, null, each with the reason
         rpe = self.rpe if self.has_ground_truth else dict.fromkeys(RPE_DELTAS)
@@ -312,6 +317,7 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
         mean_pairs=float(np.mean([s.num_pairs for s in tracked_pairs] or [0])),
         flagged=[{"timestamp": s.timestamp, "ref_timestamp": s.ref_timestamp, "quality": s.quality}
                  for s in tracked_pairs if s.flagged],
+        weak_consensus_pairs=sum(s.num_pairs < MIN_CONSENSUS * s.num_matches for s in tracked_pairs),
     )
     if getattr(seq, "groundtruth", None) is None:
         return ev

@@ -34,6 +34,14 @@ from .geometry import invert_pose, make_pose, skew
 
 #: Degrees of freedom of the integrity statistic.
 INTEGRITY_DOF = 6
+#: A pair is lost when fewer than this share of its matches agree on one rigid motion in 3-D (the
+#: outlier rejection's inliers) and fewer than this share of those that agree on one motion with one
+#: frame's depth left out (:func:`depth_free_consensus`): a majority. A depth image that belongs to
+#: another instant leaves a small consensus in 3-D on a grossly wrong motion (17 % on a wrong pose of
+#: 20 deg) while the other frame's depth and the bearings agree on the true one; a fast motion lowers
+#: both counts alike (docs/derivation.md, "The integrity check"). A pair kept below the first
+#: majority counts in ``metrics.json``'s ``weak_consensus_pairs``.
+MIN_CONSENSUS = 0.5
 
 
 def per_span(statistic: float, intervals: int) -> float:

@@ -29,7 +29,8 @@ from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_cha
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
-from .integrity import IntegrityScale, depth_free_check, depth_free_consensus, per_span, reprojection_consensus
+from .integrity import (MIN_CONSENSUS, IntegrityScale, depth_free_check, depth_free_consensus, per_span,
+                        reprojection_consensus)
 from .noise import blur_covariances, depth_lookup_variance
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
 from .steps import POSED_STATUSES, DeprecatedStepAccess, OdometryStep, StepHistory, StepStatus
@@ -46,13 +47,6 @@ __all__ = ["VisualOdometry", "OdometryConfig", "OdometryStep", "StepStatus", "PO
 REWEIGHT_TOL_RAD = 1e-2
 #: What a lost frame's reason says when no pixel of its depth image is in the depth range.
 EMPTY_DEPTH = "the depth image has no depth"
-#: A pair is lost when fewer than this share of its matches agree on one rigid motion in 3-D (the
-#: outlier rejection's inliers) and fewer than this share of those that agree on one motion with one
-#: frame's depth left out (:func:`~covo_gtsam.integrity.depth_free_consensus`): a majority. A depth
-#: image that belongs to another instant leaves a small consensus in 3-D on a grossly wrong motion
-#: (17 % on a wrong pose of 20 deg) while the other frame's depth and the bearings agree on the true
-#: one; a fast motion lowers both counts alike (docs/derivation.md, "The integrity check").
-MIN_CONSENSUS = 0.5
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from covo_gtsam.evaluation import CONSISTENCY_KEYS, RPE_DELTAS, RunEvaluation, e
 from conftest import SAMPLE_DIR
 
 BASE_KEYS = ["sequence", "frames", "tracked_frames", "lost_frames", "lost", "restarts", "unassociated", "elapsed_s",
-             "frames_per_second", "mean_pairs", "flagged_pairs", "flagged"]
+             "frames_per_second", "mean_pairs", "flagged_pairs", "flagged", "weak_consensus_pairs"]
 GT_KEYS = ["not_computed", "segments", *(f"rpe_{d}" for d in RPE_DELTAS), "ate", *CONSISTENCY_KEYS, "chains",
            "nees_breakdown", "reference_jitter", "reference_axes", "twist_change_response",
            "nees_with_reference_jitter", "without_reference_jitter"]
