@@ -184,6 +184,21 @@ def test_wide_angle_distortions_that_do_not_fold_load_and_undistort(tmp_path, f,
         load_camera_file(tmp_path / "c.json")
 
 
+def test_undistortion_finishes_by_newton_where_the_fixed_point_stalls(monkeypatch):
+    """OpenCV 4.8's fixed-point undistortion stops about 45 px short at the corner of a 300 px wide-angle
+    camera (r - 0.3 r^3 + 0.1 r^5), a fixed point of its iteration that is not the preimage; OpenCV 5's
+    reaches it. Where the fixed point leaves a pixel off, Newton's method on the distortion finishes it:
+    here with the fixed point made to stall where it starts (at the measured pixels)."""
+    from covo_gtsam.camera import Camera
+
+    cam = Camera(300, 300, 320, 240, dist=(-0.3, 0.1, 0.0, 0.0, 0.0), width=640, height=480)
+    monkeypatch.setattr(Camera, "_undistort_iterations", lambda self, uv, iterations, eps: np.array(uv, float))
+    u, v = np.meshgrid(np.arange(0.0, 641, 8), np.arange(0.0, 481, 8))
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)
+    assert np.abs(cam.distort(uv) - uv).max() > 40  # the stalled start is far off at the corners
+    assert np.abs(cam.distort(cam.undistort(uv)) - uv).max() <= 0.01  # UNDISTORT_TOLERANCE_PX
+
+
 def _yaml_with(camera_matrix: str = "", distortion: str = "") -> str:
     text = FR1_YAML
     if camera_matrix:
