@@ -134,31 +134,7 @@ class Camera:
         slow = np.flatnonzero(np.isfinite(uv).all(axis=1) & ~(off <= UNDISTORT_TOLERANCE_PX))
         if slow.size:
             out[slow] = self._undistort_iterations(uv[slow], UNDISTORT_MAX_ITERATIONS, 1e-12)
-            off = np.linalg.norm(self.distort(out[slow]) - uv[slow], axis=1)
-            stuck = slow[~(off <= UNDISTORT_TOLERANCE_PX)]  # OpenCV 4's fixed point can stall short of it
-            if stuck.size:
-                out[stuck] = self._newton_undistort(uv[stuck], out[stuck])
         return out
-
-    def _newton_undistort(self, uv: np.ndarray, start: np.ndarray, iterations: int = 50) -> np.ndarray:
-        """Undistorted pixels (N, 2) of measured pixels ``uv`` by Newton's method on
-        ``distort(x) = uv`` from ``start`` (N, 2), the 2x2 Jacobians by central differences of
-        :meth:`distort` (0.001 px); a pixel whose step is not finite keeps its last value."""
-        x = np.array(start, dtype=float)
-        h = 1e-3
-        for _ in range(iterations):
-            r = self.distort(x) - uv
-            if not np.any(np.abs(r) > 1e-9):
-                break
-            J = np.stack([(self.distort(x + [h, 0.0]) - self.distort(x - [h, 0.0])) / (2 * h),
-                          (self.distort(x + [0.0, h]) - self.distort(x - [0.0, h])) / (2 * h)], axis=2)
-            with np.errstate(all="ignore"):
-                det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
-                step = np.stack([J[:, 1, 1] * r[:, 0] - J[:, 0, 1] * r[:, 1],
-                                 J[:, 0, 0] * r[:, 1] - J[:, 1, 0] * r[:, 0]], axis=1) / det[:, None]
-            ok = np.all(np.isfinite(step), axis=1)
-            x[ok] -= step[ok]
-        return x
 
     def _undistort_iterations(self, uv: np.ndarray, iterations: int, eps: float) -> np.ndarray:
         """OpenCV's fixed-point undistortion of pixels (N, 2): at most ``iterations`` steps, until a
