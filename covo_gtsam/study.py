@@ -10,11 +10,17 @@ column              meaning
 ==================  ===========================================================================
 sequence            the sequence's name (its results folder)
 frames, lost        frames processed, frames without a pose
+flagged             pairs the integrity check flagged (metrics.json's flagged_pairs)
+weak_consensus      pairs kept with fewer than half of their matches agreeing in 3-D (weak_consensus_pairs)
 rpe1_m, rpe30_m     translational RPE RMSE (m) over 1 and 30 frames (empty without ground truth)
 ate_m               ATE RMSE (m) after alignment
 anees_t, anees_r    ANEES of translation and rotation (3 = consistent)
 above_9.35_t/_r     share of frame pairs whose NEES exceeds chi2(3) 97.5 % = 9.35
 chain_anees_t/_r    the same over chains of 30 linked pairs (composed as between factors; metrics.json's chains)
+chain_anees_r_axes_turned_back
+                    their rotation ANEES against the reference turned back by reference_axes
+twist_change_delay_ms
+                    the delay of the images against the reference (twist_change_response's delay_ms)
 worst_60_t/_r       the highest ANEES of the run's blocks of 60 pairs (metrics.json's nees_breakdown; empty
                     for fewer pairs): where an ANEES near 3 hides a stretch the covariance does not cover
 frames_per_s        speed of that run (the only column that depends on where it ran)
@@ -35,7 +41,7 @@ from .errors import ConfigError, CovoError, CovoWarning, DatasetError
 
 __all__ = ["COLUMNS", "evaluate_sequences", "run_one", "summary_row"]
 
-COLUMNS = ("sequence", "frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r",
+COLUMNS = ("sequence", "frames", "lost", "flagged", "weak_consensus", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r",
            "above_9.35_t", "above_9.35_r", "chain_anees_t", "chain_anees_r", "chain_anees_r_axes_turned_back",
            "twist_change_delay_ms", "worst_60_t", "worst_60_r", "frames_per_s")
 
@@ -56,6 +62,8 @@ def summary_row(name: str, metrics: dict) -> dict:
         "sequence": name,
         "frames": metrics.get("frames"),
         "lost": metrics.get("lost_frames"),
+        "flagged": metrics.get("flagged_pairs"),
+        "weak_consensus": metrics.get("weak_consensus_pairs"),
         "rpe1_m": _get(metrics, "rpe_1", "trans_rmse"),
         "rpe30_m": _get(metrics, "rpe_30", "trans_rmse"),
         "ate_m": _get(metrics, "ate", "rmse"),

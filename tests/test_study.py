@@ -9,7 +9,8 @@ import pytest
 
 from covo_gtsam.cli import main
 
-NUMBERS = ("frames", "lost", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r", "above_9.35_t", "above_9.35_r",
+NUMBERS = ("frames", "lost", "flagged", "weak_consensus", "rpe1_m", "rpe30_m", "ate_m", "anees_t", "anees_r",
+           "above_9.35_t", "above_9.35_r",
            "chain_anees_t", "chain_anees_r", "chain_anees_r_axes_turned_back", "worst_60_t", "worst_60_r")
 
 
@@ -184,6 +185,8 @@ def test_summary_row_takes_the_worst_window_from_the_breakdown():
     assert summary_row("s", {})["worst_60_r"] is None  # no ground truth
     axes = {"rotation_vector_deg": [-1.4, -0.5, 0.1], "standard_error_deg": [0.3] * 3, "chains_anees_rotation": 1.8}
     assert summary_row("s", {"reference_axes": axes})["chain_anees_r_axes_turned_back"] == 1.8
+    row = summary_row("s", {"flagged_pairs": 3, "weak_consensus_pairs": 2})
+    assert (row["flagged"], row["weak_consensus"]) == (3, 2)
     assert summary_row("s", {"reference_axes": None})["chain_anees_r_axes_turned_back"] is None
     assert summary_row("s", {"twist_change_response": {"delay_ms": 9.0}})["twist_change_delay_ms"] == 9.0
     assert summary_row("s", {"twist_change_response": None})["twist_change_delay_ms"] is None
