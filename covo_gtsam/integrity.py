@@ -95,6 +95,14 @@ def _pixels(Y: np.ndarray, fx: float, fy: float) -> np.ndarray:
     return np.stack([fx * Y[:, 0] / Y[:, 2], fy * Y[:, 1] / Y[:, 2]], axis=1)
 
 
+def _into_destination(T: np.ndarray, X_src: np.ndarray, forward: bool) -> np.ndarray:
+    """Source points (N, 3) in the destination camera's frame: reference points mapped by ``T^-1``
+    into the current frame (``forward``), else current points mapped by ``T`` (4x4 T_ref,cur) into
+    the reference frame."""
+    R, t = T[:3, :3], T[:3, 3]
+    return (X_src - t) @ R if forward else X_src @ R.T + t  # R^T (X - t), or R X + t
+
+
 def reprojection_system(T: np.ndarray, X_src: np.ndarray, Q_src: np.ndarray, X_dst: np.ndarray,
                         fx: float, fy: float, pixel_sigma: float, forward: bool):
     """Residuals (N, 2), Jacobians (N, 2, 6) with respect to the right perturbation of ``T`` and
@@ -104,16 +112,14 @@ def reprojection_system(T: np.ndarray, X_src: np.ndarray, Q_src: np.ndarray, X_d
     otherwise current points, mapped by ``T`` into the reference frame. ``T`` is 4x4 T_ref,cur;
     pixels are ``(fx x/z, fy y/z)`` (the principal point cancels in the residual).
     """
-    R, t = T[:3, :3], T[:3, 3]
-    n = len(X_src)
-    dY = np.empty((n, 3, 6))
+    R = T[:3, :3]
+    Y = _into_destination(T, X_src, forward)
+    dY = np.empty((len(X_src), 3, 6))
     if forward:
-        Y = (X_src - t) @ R               # R^T (X - t)
         dY[:, :, :3] = skew(Y)
         dY[:, :, 3:] = -np.eye(3)
         M = R.T
     else:
-        Y = X_src @ R.T + t
         dY[:, :, :3] = -R @ skew(X_src)
         dY[:, :, 3:] = R
         M = R
@@ -176,11 +182,11 @@ def reprojection_consensus(T: np.ndarray, X_ref: np.ndarray, X_cur: np.ndarray, 
     T = np.asarray(T, dtype=float)
     best = 0
     for forward, X_src, Q_src, X_dst in ((True, X_ref, Q_ref, X_cur), (False, X_cur, Q_cur, X_ref)):
-        Y = (X_src - T[:3, 3]) @ T[:3, :3] if forward else X_src @ T[:3, :3].T + T[:3, 3]
+        in_front = _into_destination(T, X_src, forward)[:, 2] > 0
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             r, _, S = reprojection_system(T, X_src, Q_src, X_dst, fx, fy, pixel_sigma, forward)
             d2 = np.einsum("ni,nij,nj->n", r, _inv2(S), r)
-        best = max(best, int(np.count_nonzero((Y[:, 2] > 0) & np.isfinite(d2) & (d2 < CHI2_2_99))))
+        best = max(best, int(np.count_nonzero(in_front & np.isfinite(d2) & (d2 < CHI2_2_99))))
     return best
 
 

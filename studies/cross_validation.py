@@ -1009,6 +1009,11 @@ def twist_change_table(data: Path) -> list[str]:
     return lines + [""]
 
 
+def _after_a_pair(p: dict) -> np.ndarray:
+    """Indices of the pairs of ``p`` whose first frame ends the pair before them."""
+    return np.flatnonzero(np.r_[False, np.diff(p["end"]) == 1])
+
+
 def own_change_basis(p: dict, T_key: str = "T_est", noise: float = 1.0) -> np.ndarray:
     """Latency bases (N, 6, 6) of fr1_rpy's consecutive pairs ``p`` from each pair's own change of the
     angular velocity, ``b b^T - noise N`` clipped to positive semidefinite
@@ -1020,7 +1025,7 @@ def own_change_basis(p: dict, T_key: str = "T_est", noise: float = 1.0) -> np.nd
     dt = p["t_cur"] - p["t_ref"]
     w = se3_log(p[T_key]) / dt[:, None]
     out = np.zeros((len(dt), 6, 6))
-    for k in np.flatnonzero(np.r_[False, np.diff(p["end"]) == 1]):
+    for k in _after_a_pair(p):
         out[k] = known_change_basis(p[T_key][k], w[k - 1], w[k], noise * p["cov"][k - 1] / dt[k - 1] ** 2,
                                     noise * p["cov"][k] / dt[k] ** 2)
     return out
@@ -1075,13 +1080,14 @@ def own_change_table(data: Path) -> list[str]:
         lines.append(f"| {label} | {' / '.join(fitted)} | {' / '.join(ll)} | {'; '.join(cells)} | "
                      f"{100 * np.mean(nr > 9.35):.1f} % | "
                      + " | ".join(f"{b['anees_rotation']:.2f} ({b['pairs']})" for b in by) + " |")
-    k = np.flatnonzero(np.r_[False, np.diff(rpy["end"]) == 1])
+    from covo_gtsam.calibration import twist_change
+
+    k = _after_a_pair(rpy)
     dt = (rpy["t_cur"] - rpy["t_ref"])[:, None]
     changes = []
     for key in ("T_est", "T_true"):
-        w = se3_log(rpy[key])[:, :3] / dt
-        R = rpy[key][k, :3, :3]  # the pair before's velocity into the pair's current frame
-        changes.append(w[k] - np.einsum("nji,nj->ni", R, w[k - 1]))
+        w = se3_log(rpy[key]) / dt
+        changes.append(np.array([twist_change(rpy[key][i], w[i - 1], w[i])[:3] for i in k]))
     est, true = changes
     corr = [np.corrcoef(est[:, i], true[:, i])[0, 1] for i in range(3)]
 
