@@ -223,8 +223,9 @@ class TwistChanges:
     :func:`known_change_basis`, carried on over the pair, plus ``m^2`` times the basis over the ``m``
     intervals since); rotation block only (a translation change of the twist is below its noise). The
     mean is clipped to positive semidefinite (clipping each term instead would leave most of the
-    noise in). Zero until a change has been seen (:attr:`seen`; the odometry then takes the change
-    as large as the twist itself, in any direction: docs/derivation.md, "The history's length").
+    noise in). Until a change has been seen (:attr:`seen`) the basis is the caller's prior (the
+    odometry takes the change as large as the twist itself, in any direction: docs/derivation.md,
+    "The history's length").
 
     The mean gives the changes' size and their direction over the window. Where the motion keeps
     its axis (fr1_rpy turns about one axis for seconds) the direction carries over to the next
@@ -234,7 +235,9 @@ class TwistChanges:
     :data:`ISOTROPIC_SHARES` under whose bases the changes seen so far were most likely (each
     change scored against the basis before it, with its noise; scores fade by
     :data:`SHARE_MEMORY` per change; 0 for the first :data:`SHARE_MIN_CHANGES` changes). The run
-    learns it from its own twists: no ground truth. After a long stretch about one axis the scores
+    learns it from its own twists: no ground truth. Until the window is full, the share of the
+    places still empty is spread over the axes too (all of it after one change, none when full):
+    a few changes tell the next one's size better than its direction. After a long stretch about one axis the scores
     are far apart, and a switch to wandering turns takes about 100-150 changes to move the share
     (about 50 from the start). :meth:`clear` (tracking lost) empties the window but keeps the
     scores and the share: they describe the camera's motion, not the last pairs.
@@ -262,12 +265,15 @@ class TwistChanges:
         """Whether the window holds a change."""
         return bool(self._changes)
 
-    def basis(self) -> np.ndarray:
-        """6x6 basis (tangent ``[omega, v]``, (rad/s)^2 blocks) for the next pair."""
-        if not self._changes:
-            return np.zeros((6, 6))
+    def basis(self, prior: np.ndarray | None = None) -> np.ndarray:
+        """6x6 basis (tangent ``[omega, v]``, (rad/s)^2 blocks) for the next pair; ``prior`` (6, 6;
+        zeros if None) before any change has been seen."""
         out = np.zeros((6, 6))
-        out[:3, :3] = _isotropic_mix(self._mean[:3, :3], self.share)
+        n = len(self._changes)
+        if not n:
+            return out if prior is None else np.asarray(prior, dtype=float)
+        W = self._changes.maxlen
+        out[:3, :3] = _isotropic_mix(self._mean[:3, :3], self.share + (1.0 - self.share) * (W - n) / W)
         return out
 
     def _score(self, b: np.ndarray, noise: np.ndarray) -> None:

@@ -157,6 +157,10 @@ class SensorConfig:
                                      "(0: off; 1 counts as 2; not in keyframe mode)", 0, 10000, unit="pairs")
     twist_history: int = integer(10, "recent changes of the camera's twist the latency and rolling-shutter terms "
                                  "are taken from", 1, 10000, unit="pairs")
+    angular_acceleration_prior: float = number(
+        10.0, "the camera's angular acceleration, RMS over its axes, that the latency and rolling-shutter terms "
+        "take until the run has measured a change of its twist (a prior: a hand-held camera)", "rad/s^2",
+        "non-negative", maximum=1e4)
     integrity_threshold: float = number(50.0, "flag a pair whose integrity statistic exceeds this (about chi2(6) "
                                         "when typical)", "statistic")
 

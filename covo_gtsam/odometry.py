@@ -631,12 +631,7 @@ class VisualOdometry(DeprecatedStepAccess):
         # older keyframe, the change over the k - m intervals from the keyframe to the last posed
         # frame was measured: it goes on k / (k - m) times as far over the pair, and the change since
         # the last posed frame (m intervals) may also be new, as the pairs before say
-        history = self._twist_changes.basis()
-        if not self._twist_changes.seen:  # no change yet: it may be as large as the twist, any way
-            w = _trusted_velocity(ref_step)
-            w = velocity if w is None else w
-            history = np.zeros((6, 6))
-            history[:3, :3] = np.eye(3) * float(w[:3] @ w[:3]) / 3.0
+        history = self._twist_changes.basis(self._twist_change_prior())
         known = self._known_twist_change(T, ref_step, timestamp)
         k = self.config.sensor.frame_intervals(dt)
         if known is None:
@@ -669,7 +664,8 @@ class VisualOdometry(DeprecatedStepAccess):
             # the twist over the pair: its size from the recent pairs (as the latency term's, not
             # from this pair's own twist, whose error would enter its own covariance); an older
             # keyframe's twist, its own pair's mean, by as much over the intervals it was taken
-            # over; without a previous pair, by half of the twist itself (both frames)
+            # over; without a previous pair both frames take the pair's mean, off by minus and plus
+            # half the change (a point keeps its row, so the same error at both frames would cancel)
             readout, height = self.config.sensor.rolling_shutter_s, self.camera.height
 
             def response(G, X, uv):  # of a frame's points to an error of its compensation's twist
@@ -677,14 +673,22 @@ class VisualOdometry(DeprecatedStepAccess):
 
             B = response(G_cur, X_cur, pairs.uv_cur)
             if _trusted_velocity(ref_step) is None:
-                u = (B + response(G_ref, X_ref, pairs.uv_ref)) @ (0.5 * velocity)
-                bases["rolling_shutter"] = np.outer(u, u)
+                D = B - response(G_ref, X_ref, pairs.uv_ref)
+                bases["rolling_shutter"] = 0.25 * D @ change_cov @ D.T
             else:
                 bases["rolling_shutter"] = 0.25 * B @ change_cov @ B.T
                 if known is not None:
                     B_ref = response(G_ref, X_ref, pairs.uv_ref)
                     bases["rolling_shutter"] += 0.25 * m_ref**2 * B_ref @ history @ B_ref.T
         return bases, b_cur
+
+    def _twist_change_prior(self) -> np.ndarray:
+        """The latency basis (6, 6) until the run has measured a change of its twist: the change over
+        one frame interval at ``sensor.angular_acceleration_prior``, in any direction."""
+        sensor = self.config.sensor
+        prior = np.zeros((6, 6))
+        prior[:3, :3] = np.eye(3) * (sensor.angular_acceleration_prior * sensor.frame_interval_s) ** 2 / 3.0
+        return prior
 
     def _depth_jump(self, ref: FrameData, frame: FrameData) -> float:
         """The change (s) of the colour-depth offset from ``ref`` to ``frame`` in whole periods

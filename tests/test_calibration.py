@@ -380,6 +380,30 @@ def test_twist_changes_learn_how_much_of_the_direction_carries_over():
     assert np.all(wandering.basis()[3:] == 0) and np.all(wandering.basis()[:, 3:] == 0)
 
 
+def test_twist_changes_spread_what_a_window_not_yet_full_cannot_tell():
+    """Changes about one axis fed into a window of 10 one by one: a first change says little about
+    the next one's direction, so the basis it gives also covers turns about the other axes, and
+    less so as the window fills, down to the learnt share (0 here: the direction carries over) when
+    it is full; its size (trace) is the changes' mean square throughout. A basis thin across from
+    the first change on left the pairs after a run's start overconfident (docs/derivation.md, "The
+    history's length")."""
+    from covo_gtsam.calibration import TwistChanges
+
+    tc = TwistChanges(window=10)
+    twist, across = np.zeros(6), []
+    for n in range(14):
+        step = np.array([0.0, 0.0, 0.3 if n % 2 else -0.3, 0.0, 0.0, 0.0])
+        tc.add(np.eye(4), twist, twist + step, np.zeros((6, 6)), np.zeros((6, 6)))
+        twist = twist + step
+        B = tc.basis()
+        assert np.trace(B) == pytest.approx(0.09, rel=1e-9)
+        across.append((B[0, 0] + B[1, 1]) / np.trace(B))
+    assert tc.share == 0.0
+    assert across[0] > 0.5  # 9/10 of the size spread evenly: 0.6 across
+    assert all(a > b for a, b in zip(across[:9], across[1:10]))
+    assert across[9:] == [0.0] * 5
+
+
 def test_twist_changes_clear_forgets_the_window():
     """After clear() the basis is that of a fresh history fed the same later changes."""
     from covo_gtsam.calibration import TwistChanges

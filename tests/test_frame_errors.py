@@ -123,6 +123,36 @@ def test_rolling_shutter_basis_is_the_response_to_a_twist_error():
     assert np.linalg.norm(actual - B @ dtw) < 0.05 * np.linalg.norm(B @ dtw)
 
 
+def test_opposite_twist_errors_at_the_two_frames_move_the_pose_by_the_difference_of_their_bases():
+    """A run's first pair compensates both frames' readout with the pair's mean twist, which errs by
+    ``-c/2`` at the reference and ``+c/2`` at the current frame (``c``: the twist's change over the
+    pair). Re-solved with GTSAM, the pose moves by ``(B_cur - B_ref) c/2`` (each frame's basis from its
+    points' rows); a point keeps its row from frame to frame under a small motion, so the sum
+    ``(B_cur + B_ref) c/2`` (the same error at both frames) nearly cancels and would understate it."""
+    X0, X1, Q0, Q1, _ = _pair(5)
+    res = estimate_relative_pose(X0, X1, Q0, Q1)
+    T = res.pose.matrix()
+    G0, G1 = transfer_gains(T[:3, :3], T[:3, 3], X0, X1, Q0, Q1)
+    cam = Camera.preset("fr1")
+
+    def rows(X):  # capture time of each point's image row after the stamp, 25 ms readout
+        v = cam.fy * X[:, 1] / X[:, 2] + cam.cy
+        return (v / cam.height - 0.5) * 0.025
+
+    d0, d1 = rows(X0), rows(X1)
+    B0, B1 = rolling_shutter_basis(G0, X0, d0), rolling_shutter_basis(G1, X1, d1)
+    c = np.array([0.3, -0.2, 0.25, 0.02, -0.01, 0.03])
+
+    def moved(X, d, err):
+        return X + d[:, None] * (np.cross(err[:3], X) + err[3:])
+
+    r = estimate_relative_pose(moved(X0, d0, -c / 2), moved(X1, d1, c / 2), Q0, Q1, initial=res.pose)
+    actual = gtsam.Pose3.Logmap(res.pose.between(r.pose))
+    expected = (B1 - B0) @ (c / 2)
+    assert np.linalg.norm(actual - expected) < 0.05 * np.linalg.norm(expected)
+    assert np.linalg.norm((B1 + B0) @ (c / 2)) < 0.2 * np.linalg.norm(expected)
+
+
 def test_depth_period_jump_counts_the_whole_periods_the_depth_image_moved_by():
     """Colour and depth images on clocks 0.5 % apart, stamps jittered by 2 ms, each colour frame
     taking the depth image with the nearest stamp: from the stamps alone, the jump is the change of
