@@ -224,8 +224,8 @@ class TwistChanges:
     intervals since); rotation block only (a translation change of the twist is below its noise). The
     mean is clipped to positive semidefinite (clipping each term instead would leave most of the
     noise in). Until a change has been seen (:attr:`seen`) the basis is the caller's prior (the
-    odometry takes the change as large as the twist itself, in any direction: docs/derivation.md,
-    "The history's length").
+    odometry's: ``sensor.angular_acceleration_prior`` over one frame interval, in any direction;
+    docs/derivation.md, "The history's length").
 
     The mean gives the changes' size and their direction over the window. Where the motion keeps
     its axis (fr1_rpy turns about one axis for seconds) the direction carries over to the next
@@ -236,7 +236,8 @@ class TwistChanges:
     change scored against the basis before it, with its noise; scores fade by
     :data:`SHARE_MEMORY` per change; 0 for the first :data:`SHARE_MIN_CHANGES` changes). The run
     learns it from its own twists: no ground truth. Until the window is full, the share of the
-    places still empty is spread over the axes too (all of it after one change, none when full):
+    places still empty is spread over the axes too (nine tenths after one change in a window of 10,
+    none when full):
     a few changes tell the next one's size better than its direction. After a long stretch about one axis the scores
     are far apart, and a switch to wandering turns takes about 100-150 changes to move the share
     (about 50 from the start). :meth:`clear` (tracking lost) empties the window but keeps the

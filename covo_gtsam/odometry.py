@@ -664,8 +664,9 @@ class VisualOdometry(DeprecatedStepAccess):
             # the twist over the pair: its size from the recent pairs (as the latency term's, not
             # from this pair's own twist, whose error would enter its own covariance); an older
             # keyframe's twist, its own pair's mean, by as much over the intervals it was taken
-            # over; without a previous pair both frames take the pair's mean, off by minus and plus
-            # half the change (a point keeps its row, so the same error at both frames would cancel)
+            # over; without a twist at the reference (a run's first pair) both frames' twists are
+            # off by minus and plus half the change over the pair (a point keeps its row, so the
+            # same error at both frames would nearly cancel)
             readout, height = self.config.sensor.rolling_shutter_s, self.camera.height
 
             def response(G, X, uv):  # of a frame's points to an error of its compensation's twist
