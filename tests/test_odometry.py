@@ -330,6 +330,31 @@ def test_keyframe_pairs_take_the_twist_change_to_the_last_frame_as_measured(samp
     assert np.trace(measured[13]) > 0.01 * np.trace(history)
 
 
+def test_a_runs_first_pair_takes_its_frames_twist_errors_with_opposite_signs(sample_dir, monkeypatch):
+    """A run's first pair compensates both frames with the pair's mean twist, which is off by -c/2
+    at the reference and +c/2 at the current frame (``c`` the twist's change over the pair): with
+    the two frames responding alike to a twist error (every response replaced by the identity) the
+    two effects cancel and the first pair has no rolling-shutter term (the same error at both frames
+    would have given one as large as the twist); the second pair, whose reference has a twist,
+    takes the current frame's alone, a quarter of its latency basis; both take the prior as their
+    latency basis, the twist's change at ``sensor.angular_acceleration_prior``."""
+    import covo_gtsam.odometry as odometry_module
+    from covo_gtsam.datasets.tum import TumSequence
+
+    monkeypatch.setattr(odometry_module, "rolling_shutter_basis", lambda G, X, rows: np.eye(6))
+    seq = TumSequence(sample_dir)
+    vo = VisualOdometry(seq.camera)
+    steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i])
+             for i in range(3)]
+    assert [s.status for s in steps] == ["first", "tracked", "tracked"]
+    first, second = steps[1].error_bases, steps[2].error_bases
+    assert np.linalg.norm(steps[1].velocity[:3]) > 0.5  # turning: a same-sign error would not vanish
+    np.testing.assert_array_equal(first["rolling_shutter"], np.zeros((6, 6)))
+    np.testing.assert_allclose(second["rolling_shutter"], second["latency"] / 4, rtol=1e-12)
+    np.testing.assert_allclose(first["latency"], second["latency"], rtol=1e-12)
+    assert second["latency"][0, 0] == pytest.approx((10.0 / 30.0) ** 2 / 3, rel=1e-12)
+
+
 def test_keyframe_pairs_rolling_shutter_term_counts_both_frames_twist_errors(sample_dir, monkeypatch):
     """The rolling-shutter term of a pair is ``1/4 B H B^T`` per frame whose compensation twist may
     be off by half a recent change (``H`` the history's basis, ``B`` the frame's response to a twist
