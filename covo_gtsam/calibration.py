@@ -238,8 +238,8 @@ class TwistChanges:
     learns it from its own twists: no ground truth. Until the window is full, the share of the
     places still empty is spread over the axes too (nine tenths after one change in a window of 10,
     none when full): a few changes tell the next one's size better than its direction. After a long
-    stretch about one axis the scores are far apart, and a switch to wandering turns takes about 100-150 changes to move the share
-    (about 50 from the start). :meth:`clear` (tracking lost) empties the window but keeps the
+    stretch about one axis the scores are far apart, and a switch to wandering turns takes about
+    100-150 changes to move the share (about 50 from the start). :meth:`clear` (tracking lost) empties the window but keeps the
     scores and the share: they describe the camera's motion, not the last pairs.
     """
 
