@@ -223,7 +223,7 @@ class TwistChanges:
     :func:`known_change_basis`, carried on over the pair, plus ``m^2`` times the basis over the ``m``
     intervals since); rotation block only (a translation change of the twist is below its noise). The
     mean is clipped to positive semidefinite (clipping each term instead would leave most of the
-    noise in). Until a change has been seen (:attr:`seen`) the basis is the caller's prior (the
+    noise in). Until the window holds a change the basis is the caller's prior (the
     odometry's: ``sensor.angular_acceleration_prior`` over one frame interval, in any direction;
     docs/derivation.md, "The history's length").
 
@@ -239,8 +239,9 @@ class TwistChanges:
     places still empty is spread over the axes too (nine tenths after one change in a window of 10,
     none when full): a few changes tell the next one's size better than its direction. After a long
     stretch about one axis the scores are far apart, and a switch to wandering turns takes about
-    100-150 changes to move the share (about 50 from the start). :meth:`clear` (tracking lost) empties the window but keeps the
-    scores and the share: they describe the camera's motion, not the last pairs.
+    100-150 changes to move the share (about 50 from the start). :meth:`clear` (tracking lost)
+    empties the window but keeps the scores and the share: they describe the camera's motion, not
+    the last pairs.
     """
 
     def __init__(self, window: int = 10) -> None:
@@ -259,11 +260,6 @@ class TwistChanges:
             self._mean = np.zeros((6, 6))
             return
         self._mean = _positive_part(self._sum / len(self._changes))
-
-    @property
-    def seen(self) -> bool:
-        """Whether the window holds a change."""
-        return bool(self._changes)
 
     def basis(self, prior: np.ndarray | None = None) -> np.ndarray:
         """6x6 basis (tangent ``[omega, v]``, (rad/s)^2 blocks) for the next pair; ``prior`` (6, 6;
