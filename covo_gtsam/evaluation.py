@@ -21,7 +21,7 @@ from .covariance import compose_chains
 from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
 from .geometry import invert_pose
-from .integrity import MIN_CONSENSUS
+from .integrity import below_majority
 from .metrics import anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
@@ -317,7 +317,7 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
         mean_pairs=float(np.mean([s.num_pairs for s in tracked_pairs] or [0])),
         flagged=[{"timestamp": s.timestamp, "ref_timestamp": s.ref_timestamp, "quality": s.quality}
                  for s in tracked_pairs if s.flagged],
-        weak_consensus_pairs=sum(s.num_pairs < MIN_CONSENSUS * s.num_matches for s in tracked_pairs),
+        weak_consensus_pairs=sum(below_majority(s.num_pairs, s.num_matches) for s in tracked_pairs),
     )
     if getattr(seq, "groundtruth", None) is None:
         return ev

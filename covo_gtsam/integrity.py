@@ -44,6 +44,11 @@ INTEGRITY_DOF = 6
 MIN_CONSENSUS = 0.5
 
 
+def below_majority(agreeing: int, of: int) -> bool:
+    """Whether ``agreeing`` matches are fewer than :data:`MIN_CONSENSUS` of ``of``."""
+    return agreeing < MIN_CONSENSUS * of
+
+
 def per_span(statistic: float, intervals: int) -> float:
     """The integrity statistic of a pair ``intervals`` frame intervals long on the scale of one
     interval, ``q / sqrt(k)``: the depth-free and 3D-3D estimates disagree more over more

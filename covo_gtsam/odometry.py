@@ -29,8 +29,8 @@ from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_cha
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
-from .integrity import (MIN_CONSENSUS, IntegrityScale, depth_free_check, depth_free_consensus, per_span,
-                        reprojection_consensus)
+from .integrity import (MIN_CONSENSUS, IntegrityScale, below_majority, depth_free_check, depth_free_consensus,
+                        per_span, reprojection_consensus)
 from .noise import blur_covariances, depth_lookup_variance
 from .rolling_shutter import compensate_points, frame_twists, row_time_offsets
 from .steps import POSED_STATUSES, DeprecatedStepAccess, OdometryStep, StepHistory, StepStatus
@@ -350,9 +350,9 @@ class VisualOdometry(DeprecatedStepAccess):
                            f"detected, {frame.num_valid} with valid depth, {pairs.num_matches} matched)"
                            f"{self._no_depth_note(frame)}")
             return step
-        if pairs.num_inliers < MIN_CONSENSUS * pairs.num_matches:
+        if below_majority(pairs.num_inliers, pairs.num_matches):
             agreed = self._bearings_consensus(ref, frame, pairs)
-            if pairs.num_inliers < MIN_CONSENSUS * agreed:
+            if below_majority(pairs.num_inliers, agreed):
                 step.reason = (f"no consensus: {pairs.num_inliers} of its {pairs.num_matches} matches agree on one "
                                f"motion in 3-D, {agreed} with one frame's depth left out (fewer than "
                                f"{MIN_CONSENSUS:.0%} of those: a depth image that does not belong to its colour "
