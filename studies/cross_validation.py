@@ -461,8 +461,8 @@ def whole_sequence_table(data: Path) -> list[str]:
     """The motion of all of fr1_rpy, from its ground-truth file (which covers the whole sequence,
     not only the shared 240 frames): per block of 60 pairs at the frames' period, the mean true
     angular speed, the pairs above 2 rad/s, and the ANEES the shared frames' ANEES by angular
-    acceleration (:func:`acceleration_table`'s bins, all pairs but the run's start) would give with that block's
-    accelerations: where the shared frames do not cover the motion, and what to expect."""
+    acceleration (:func:`acceleration_table`'s bins, all pairs but the run's start) would give with
+    that block's accelerations: where the shared frames do not cover the motion, and what to expect."""
     from covo_gtsam.datasets.tum import interpolate_poses
     from covo_gtsam.geometry import invert_pose
     from covo_gtsam.io import load_tum_trajectory
@@ -491,9 +491,9 @@ def whole_sequence_table(data: Path) -> list[str]:
              "the ANEES t / r that the shared frames' ANEES by angular acceleration (table above, all pairs but "
              f"the run's first {start}, before its twist history is full: the rest of the sequence has no such "
              "start) gives for the block's accelerations. Not a measurement of those frames: where the shared "
-             "frames do not "
-             f"cover the motion (the shared frames have {int(np.sum(shared_speed > 2))} pairs above 2 rad/s), what the "
-             "model's known dependence on the acceleration alone would make, and so the share of NEES above 9.35 "
+             f"frames do not cover the motion (the shared frames have {int(np.sum(shared_speed > 2))} pairs above "
+             "2 rad/s), what the model's known dependence on the acceleration alone would make, and so the share "
+             "of NEES above 9.35 "
              f"t / r (on the shared frames {100 * np.mean(nt > 9.35):.1f} / {100 * np.mean(nr > 9.35):.1f} %; 2.5 % "
              "when consistent).", "",
              "| pairs | mean angular speed (rad/s) | pairs above 2 rad/s | ANEES t / r expected from the "
