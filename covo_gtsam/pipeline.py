@@ -297,10 +297,12 @@ def run_sequence(
     with FolderLock(out):
         from .plots import RUN_PLOTS
 
-        from .ros_io import clear_bag_output, remove_earlier_bags
+        from .ros_io import check_bag_stamps, clear_bag_output, remove_earlier_bags
 
         inputs = (getattr(seq, "path", None),)
         if bag_out is not None:  # checked before anything is removed; the bag writer removes covo's own
+            n = len(seq) if max_frames is None else min(len(seq), max_frames)
+            check_bag_stamps(seq.timestamps[:n], bag_out, f"{getattr(seq, 'path', seq.name)}: a frame stamp")
             clear_bag_output(out, bag_out, inputs=inputs, remove=False)
         prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
         remove_earlier_bags(out, bag_out, inputs)  # of the other format, or of any without --bag-out

@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import os
 import shutil
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from decimal import Decimal
 from pathlib import Path
 
 import gtsam
@@ -42,8 +43,8 @@ from .covariance import tangent_to_ros
 from .errors import ConfigError, DatasetError
 from .geometry import matrix_to_quat
 
-__all__ = ["BAG_FORMATS", "UNKNOWN_TWIST_VARIANCE", "OdometryBagWriter", "bag_output_path", "clear_bag_output",
-           "require_rosbags"]
+__all__ = ["BAG_FORMATS", "STAMP_SECONDS", "UNKNOWN_TWIST_VARIANCE", "OdometryBagWriter", "bag_output_path",
+           "check_bag_stamps", "clear_bag_output", "require_rosbags"]
 
 BAG_FORMATS = ("ros1", "ros2")
 ODOMETRY_TOPIC = "/covo/odometry"
@@ -148,12 +149,35 @@ def remove_earlier_bags(out_dir: str | os.PathLike, keep: str | None, inputs: tu
 UNKNOWN_TWIST_VARIANCE = 1e6
 
 
+#: the whole seconds a header stamp holds: ROS 2's ``builtin_interfaces/Time`` a signed 32-bit count;
+#: ROS 1's ``time`` an unsigned one, which rosbags serialises through the signed type, so neither
+#: negative nor beyond 2^31 - 1 (2038-01-19)
+STAMP_SECONDS = {"ros1": (0, 2**31 - 1), "ros2": (-(2**31), 2**31 - 1)}
+
+
+def check_bag_stamps(stamps: Sequence[float], fmt: str, what: str = "the stamps") -> None:
+    """:class:`DatasetError` when a stamp (s) of ``stamps`` falls outside what a ``fmt`` bag's
+    header stamps hold (:data:`STAMP_SECONDS`), before anything is written."""
+    stamps = np.asarray(stamps, dtype=float)
+    if stamps.size == 0:
+        return
+    lo, hi = STAMP_SECONDS[fmt]
+    bad = (stamps < lo) | (stamps >= hi + 1)
+    if np.any(bad):
+        name = "ROS 1" if fmt == "ros1" else "ROS 2"
+        raise DatasetError(f"{what}: {float(stamps[bad][0]):.6f} s cannot be written to a {name} bag, whose header "
+                           f"stamps hold {lo} to {hi} s; shift the stamps"
+                           + (" or write --bag-out ros2" if fmt == "ros1" and np.all(stamps >= -(2**31)) and
+                              np.all(stamps < 2**31) else ""))
+
+
 def _nanoseconds(t: float, exact: Mapping[float, int] | None = None) -> int:
     """Stamp ``t`` (s) in integer nanoseconds: ``exact``'s value for it where given (a bag's own
-    stamps, which a float in seconds holds only to about 0.1 us today), else ``t`` rounded."""
+    stamps, which a float in seconds holds only to about 0.1 us today), else the shortest decimal
+    that reads back as ``t`` (a TUM stamp as its file wrote it, to the nanosecond), rounded."""
     if exact is not None and float(t) in exact:
         return int(exact[float(t)])
-    return int(round(float(t) * 1e9))
+    return int((Decimal(repr(float(t))) * 1_000_000_000).to_integral_value())
 
 
 class OdometryBagWriter:
@@ -240,6 +264,7 @@ class OdometryBagWriter:
         if not step.has_pose:
             return
         T = self.ts.types
+        check_bag_stamps([step.timestamp], self.fmt, f"frame stamp {step.timestamp!r}")
         ns = _nanoseconds(step.timestamp, self._stamps_ns)
         odom = T["nav_msgs/msg/Odometry"](
             header=self._header(ns, ODOM_FRAME), child_frame_id=self.camera_frame,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from decimal import Decimal
 from pathlib import Path
 
 import cv2
@@ -494,6 +495,60 @@ def test_bag_output_never_replaces_the_bag_it_reads(sample_dir, tmp_path, capsys
     assert main(["run", str(bag), "--out", str(out), "--quiet", "--no-plots", "--bag-out", "ros1"]) == 2
     assert "is the sequence this run reads" in capsys.readouterr().err
     assert bag.is_file() and RosbagSequence(bag).timestamps.shape == (3,)
+
+
+def _shifted_copy(sample_dir: Path, dest: Path, shift_s: int) -> Path:
+    """The sample with every stamp of rgb.txt, depth.txt and groundtruth.txt moved by ``shift_s``
+    (whole seconds, in decimal: the stamps keep their digits), its images linked."""
+    dest.mkdir()
+    for sub in ("rgb", "depth"):
+        (dest / sub).symlink_to(sample_dir / sub)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        lines = []
+        for line in (sample_dir / name).read_text().splitlines():
+            if line.strip() and not line.startswith("#"):
+                stamp, rest = line.split(" ", 1)
+                line = f"{Decimal(stamp) + shift_s} {rest}"
+            lines.append(line)
+        (dest / name).write_text("\n".join(lines) + "\n")
+    return dest
+
+
+def test_a_folders_bag_carries_the_stamps_of_rgb_txt_to_the_nanosecond(sample_dir, tmp_path):
+    # rgb.txt's decimals, read as text (not through a float, which near 1.3e9 s holds the stamp only
+    # to about 0.2 us), against the bag's header stamps and record times, read back with rosbags
+    rows = [line.split()[0] for line in (sample_dir / "rgb.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")][:6]
+    expected = [(int(a), int(b.ljust(9, "0"))) for a, b in (r.split(".") for r in rows)]
+    for fmt, name in (("ros1", "odometry.bag"), ("ros2", "odometry")):
+        out = tmp_path / fmt
+        _run(["run", str(sample_dir), "--out", str(out), "--max-frames", "6", "--bag-out", fmt])
+        with AnyReader([out / name]) as reader:
+            conns = [c for c in reader.connections if c.topic == "/covo/odometry"]
+            got = [(ns, reader.deserialize(raw, c.msgtype).header.stamp) for c, ns, raw in reader.messages(conns)]
+        assert [(st.sec, st.nanosec) for _, st in got] == expected
+        assert [ns for ns, _ in got] == [a * 10**9 + b for a, b in expected]
+
+
+def test_stamps_a_bag_cannot_hold_are_refused_before_the_run(sample_dir, tmp_path, capsys):
+    # ROS 1 stamps are unsigned, ROS 2's signed 32-bit seconds: refused with one line and exit 2
+    # before anything is written, not a traceback halfway through the run
+    early = _shifted_copy(sample_dir, tmp_path / "early_freiburg1", -1305031232)  # the first stamp at -2.47 s
+    late = _shifted_copy(sample_dir, tmp_path / "late_freiburg1", 1_000_000_000)  # in 2043
+    for seq, fmt, hint in ((early, "ros1", "--bag-out ros2"), (late, "ros2", "shift the stamps"),
+                           (late, "ros1", "shift the stamps")):
+        out = tmp_path / f"{seq.name}_{fmt}"
+        assert main(["run", str(seq), "--out", str(out), "--max-frames", "4", "--quiet", "--no-plots",
+                     "--bag-out", fmt]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "cannot be written to a ROS" in err and hint in err, err
+        assert not out.exists() or not any(out.iterdir())
+    # what a bag can hold runs: negative stamps in ROS 2
+    _run(["run", str(early), "--out", str(tmp_path / "o2"), "--max-frames", "4", "--bag-out", "ros2"])
+    with AnyReader([tmp_path / "o2" / "odometry"]) as reader:
+        first = next(reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
+                     if c.topic == "/covo/odometry")
+    assert (first.header.stamp.sec, first.header.stamp.nanosec) == (-3, 528748000)
 
 
 def test_chain_samples_need_exactly_one_moving_link():
