@@ -19,8 +19,8 @@ source, built from the pair's geometry and the camera's motion, and ``sigma_j`` 
 physical size (:data:`ERROR_TERMS`):
 
 * ``timing`` (s): a frame captured off its timestamp; ``B = sum_f xi_f xi_f^T`` over the body twists
-  ``xi_f`` ``[omega, v]`` (rad/s, m/s) at the pair's frames, since the frame's pose is then off by
-  ``Exp(d xi_f)`` (:func:`timing_covariance`);
+  ``xi_f`` ``[omega, v]`` (rad/s, m/s) at the pair's frames, the reference's carried into the current
+  frame, since the frame's pose is then off by ``Exp(d xi_f)`` (:func:`stamp_error_basis`);
 * ``depth_scale`` (relative): a frame's depths all scaled by ``1 + e``;
 * ``depth_time`` (dimensionless): the depth image's time off by ``c`` times the frame's stamped
   colour-depth offset (a depth image delivered with the neighbouring colour image);
@@ -69,6 +69,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance",
+           "stamp_error_basis",
            "twist_change", "known_change_basis", "latency_basis", "TwistChanges", "span_basis", "sensor_covariance",
            "log_likelihood", "fit_sensor_terms", "MIN_SPAN_PAIRS", "span_fit_pairs", "fit_span_factor"]
 
@@ -131,6 +132,20 @@ def timing_covariance(twists: np.ndarray, timing_sigma_s: float = 1.0) -> np.nda
     default ``tau = 1`` it is the term's basis ``B``."""
     xi = np.asarray(twists, dtype=float)
     return timing_sigma_s**2 * np.einsum("...fi,...fj->...ij", xi, xi)
+
+
+def stamp_error_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray,
+                      weights: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+    """Basis (6, 6) of the ``timing`` term (and, with ``weights`` per frame, of ``stamp_jitter``):
+    each frame of the pair ``T_ref,cur`` (4x4) captured ``d_f`` s off its stamp (independent, variance
+    ``weights[f]`` per unit) moves the pair by ``-d_ref Ad(T^-1) xi_ref + d_cur xi_cur`` (right
+    perturbation, body twists ``[omega, v]``); :func:`timing_covariance` of the two in the current
+    frame."""
+    import gtsam
+
+    ref_in_cur = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float)).inverse().AdjointMap() @ np.asarray(twist_ref, float)
+    twists = np.stack([ref_in_cur, np.asarray(twist_cur, dtype=float)]) * np.sqrt(np.asarray(weights, float))[:, None]
+    return timing_covariance(twists)
 
 
 def span_basis(step_m: np.ndarray | float, intervals: np.ndarray | int) -> np.ndarray:

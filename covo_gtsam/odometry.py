@@ -15,7 +15,7 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
-from .calibration import TwistChanges, known_change_basis, span_basis, timing_covariance
+from .calibration import TwistChanges, known_change_basis, span_basis, stamp_error_basis
 from .camera import Camera
 from .choices import MotionModel
 from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
@@ -373,7 +373,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp)
         step.error_bases, b = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt,
-                                                timestamp)
+                                                timestamp, r_cur)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -554,15 +554,18 @@ class VisualOdometry(DeprecatedStepAccess):
         return per_span(step.integrity_statistic, self.config.sensor.frame_intervals(step.timestamp - step.ref_timestamp))
 
     def _pose_between_stamps(self, step: OdometryStep, res: RelativePoseResult, ref_step: OdometryStep,
-                             twists: tuple[np.ndarray, np.ndarray] | None, r_ref: float, r_cur: float) -> None:
-        """``step``'s relative pose moved from the captures to the stamps (by the clock offsets
-        ``r_ref``, ``r_cur``), and its pose composed onto the reference's."""
+                             twists: tuple[np.ndarray, np.ndarray] | None, r_ref: float, r_cur: float | None
+                             ) -> None:
+        """``step``'s relative pose moved from the captures to the stamps (by ``r_ref``, ``r_cur``:
+        :meth:`_capture_interval`), and its pose composed onto the reference's."""
         step.relative = res.pose
         if twists is not None:
             # a flagged pair's twist is likely wrong (by metres per second): its frame moves to its
             # stamp with its reference's twist instead
             trusted = _trusted_velocity(ref_step)
             step.stamp_twist = trusted if step.flagged and trusted is not None else step.velocity
+            step.stamp_shift = r_cur
+        r_cur = r_cur or 0.0
         if twists is not None and (r_ref or r_cur):
             # the pose between the two stamps, as a back end fed with the stamps reads it; the
             # reference frame moves with the twist it was moved with as its own pair's end, so
@@ -591,29 +594,38 @@ class VisualOdometry(DeprecatedStepAccess):
         self._twist_changes.add(cur.motion.matrix(), last.velocity, step.velocity, prev.noise, cur.noise,
                                 cur.intervals)
 
-    def _capture_interval(self, ref_step: OdometryStep, timestamp: float) -> tuple[float, float, float]:
-        """``(dt, r_ref, r_cur)``: the time between the two frames' captures (s) and the clock offsets
-        (s) used to move the pose to the stamps. The stamps' difference corrected by the frame clock;
-        the stamps' difference with no offsets when the clock has not placed both frames or would
-        change the interval by more than half (e.g. a repeated stamp). An interval shorter than a
-        quarter of ``frame_interval_s`` counts as 0: no velocity is taken from it."""
+    def _capture_interval(self, ref_step: OdometryStep, timestamp: float) -> tuple[float, float, float | None]:
+        """``(dt, r_ref, r_cur)``: the time between the two frames' captures (s) and the times (s) by
+        which the pose is moved from the captures to the stamps. The reference frame moves by what
+        its own pair moved it (``ref_step.stamp_shift``), so that consecutive moves cancel along the
+        trajectory; the current frame by its offset from the frame clock where the clock placed it
+        and that changes the interval by at most half (not, e.g., at a repeated stamp), else not at
+        all (``r_cur`` None: taken at its stamp). An interval shorter than a quarter of
+        ``frame_interval_s`` counts as 0: no velocity is taken from it."""
         stamp_dt = timestamp - ref_step.timestamp
-        r_ref, r_cur = ref_step.clock_offset, (self._clock_offset or 0.0)
-        dt = stamp_dt - r_cur + r_ref
-        if not (ref_step.clock_samples and self._clock_offset is not None and stamp_dt > 0
-                and 0.5 * stamp_dt <= dt <= 2.0 * stamp_dt):
-            dt, r_ref, r_cur = stamp_dt, 0.0, 0.0
+        r_ref = ref_step.stamp_shift or 0.0
+        r_cur = self._clock_offset  # None until the clock places the frame
+
+        def plausible(dt: float) -> bool:
+            return stamp_dt > 0 and 0.5 * stamp_dt <= dt <= 2.0 * stamp_dt
+
+        if r_cur is None or not plausible(stamp_dt - r_cur + r_ref):
+            r_cur = None
+            if not plausible(stamp_dt + r_ref):
+                r_ref = 0.0
+        dt = stamp_dt - (r_cur or 0.0) + r_ref
         if dt < 0.25 * self.config.sensor.frame_interval_s:
             dt = 0.0
         return dt, r_ref, r_cur
 
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
-                     dt: float, timestamp: float) -> tuple[dict, np.ndarray]:
+                     dt: float, timestamp: float, r_cur: float | None) -> tuple[dict, np.ndarray]:
         """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`) and its
         response ``b`` (6,) to the current frame's depths scaled by ``1 + e`` (per unit ``e``);
         ``twists`` are the camera's twists at the two frames
-        (:func:`~covo_gtsam.rolling_shutter.frame_twists`), None without motion."""
+        (:func:`~covo_gtsam.rolling_shutter.frame_twists`), None without motion; ``r_cur`` the current
+        frame's move to its stamp (:meth:`_capture_interval`)."""
         M = T.matrix()
         G_ref, G_cur = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         b_ref, b_cur = depth_scale_basis(G_ref, X_ref), depth_scale_basis(G_cur, X_cur)
@@ -625,7 +637,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if twists is None:
             return bases, b_cur  # no motion: no timing terms
         twist_ref, velocity = twists
-        bases["timing"] = timing_covariance(np.stack([twist_ref, velocity]))
+        bases["timing"] = stamp_error_basis(M, twist_ref, velocity)
         # the covariance of the twist's change over the pair, from the pairs before this one (over k
         # frame intervals the twist changes k times as much), the latency term's basis; against an
         # older keyframe, the change over the k - m intervals from the keyframe to the last posed
@@ -641,11 +653,12 @@ class VisualOdometry(DeprecatedStepAccess):
             measured, m, m_ref = known  # m_ref: the intervals the keyframe's own twist was taken over
             change_cov = m**2 * history  # the current frame's twist was taken over these m intervals
             bases["latency"] = (k / max(k - m, 1)) ** 2 * measured + change_cov
-        # a frame's stamp keeps its full jitter until the frame clock places it, and then the
-        # uncertainty of the clock's phase, fitted to n stamps: 1/n of the jitter's variance
-        n_cur = self._clock.samples if self._clock_offset is not None else 0
-        weights = np.array([1.0 / max(ref_step.clock_samples, 1), 1.0 / max(n_cur, 1)])
-        bases["stamp_jitter"] = timing_covariance(np.stack([twist_ref, velocity]) * np.sqrt(weights)[:, None])
+        # a frame's pose keeps its stamp's full jitter unless it was moved to its place on the frame
+        # clock, and then the uncertainty of the clock's phase, fitted to n stamps: 1/n of the variance
+        n_ref = ref_step.clock_samples if ref_step.stamp_shift is not None else 0
+        n_cur = self._clock.samples if r_cur is not None else 0
+        weights = (1.0 / max(n_ref, 1), 1.0 / max(n_cur, 1))
+        bases["stamp_jitter"] = stamp_error_basis(M, twist_ref, velocity, weights)
         h_ref = ref.depth_offset * depth_time_basis(G_ref, X_ref, twist_ref)
         h_cur = frame.depth_offset * depth_time_basis(G_cur, X_cur, velocity)
         bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)

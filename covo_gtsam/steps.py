@@ -73,6 +73,10 @@ class OdometryStep:
     #: the twist this frame was moved from its capture to its stamp with (None: not moved): the
     #: pair's own ``velocity``, or for a flagged pair its reference's (its own is likely wrong)
     stamp_twist: np.ndarray | None = field(default=None, repr=False)
+    #: the time (s) this frame's pose was moved from its capture to its stamp by (its offset from the
+    #: frame clock); None: not moved, the pose is taken at the stamp (before the clock places the
+    #: stamps, and for a frame without a pair)
+    stamp_shift: float | None = field(default=None, repr=False)
     quality: float | None = None
     flagged: bool = False
     integrity_statistic: float | None = None

@@ -134,6 +134,32 @@ def test_timing_term_matches_monte_carlo_of_stamp_errors():
     np.testing.assert_allclose(C, sensor_covariance(P, 2.0, 0.001, 0.002) + pred)
 
 
+def test_stamp_error_basis_matches_monte_carlo_with_the_twist_changing_over_a_turn():
+    """As above, but the twists at the two frames differ and the pair turns by 40 deg, so the
+    reference's twist must be carried into the current frame (a constant twist cannot tell): each
+    frame captured tau_f ~ N(0, w_f s^2) off its stamp moves the pair to
+    Exp(tau_ref xi_ref)^-1 T Exp(tau_cur xi_cur); the covariance of the right perturbation."""
+    import gtsam
+
+    from covo_gtsam.calibration import stamp_error_basis, timing_covariance
+
+    rng = np.random.default_rng(8)
+    xi_ref = np.array([0.3, -1.2, 0.5, 0.05, 0.2, -0.1])  # rad/s, m/s
+    xi_cur = np.array([-0.8, 0.4, 1.1, 0.3, -0.1, 0.2])
+    T = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.4, -0.5, 0.3), np.array([0.2, -0.1, 0.3]))
+    s, weights = 0.003, (1.0, 0.25)
+    errs = []
+    for tau_ref, tau_cur in rng.normal(0, s, size=(20000, 2)) * np.sqrt(weights):
+        moved = gtsam.Pose3.Expmap(tau_ref * xi_ref).inverse() * T * gtsam.Pose3.Expmap(tau_cur * xi_cur)
+        errs.append(gtsam.Pose3.Logmap(T.between(moved)))
+    emp = np.cov(np.array(errs).T)
+    pred = s**2 * stamp_error_basis(T.matrix(), xi_ref, xi_cur, weights)
+    np.testing.assert_allclose(emp, pred, atol=0.03 * np.abs(pred).max())
+    # the reference's twist as it is, in its own frame, is off by far more than the sampling
+    wrong = s**2 * timing_covariance(np.stack([xi_ref, xi_cur]) * np.sqrt(weights)[:, None])
+    assert np.abs(wrong - emp).max() > 0.2 * np.abs(pred).max()
+
+
 def test_latency_term_matches_monte_carlo_of_a_common_stamp_delay():
     """Both frames' stamps L seconds off their captures (one L ~ N(0, s^2) for the pair) on a
     trajectory whose twist changes between the frames: the relative pose between the shifted

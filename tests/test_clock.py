@@ -97,3 +97,33 @@ def test_repeated_stamp_with_the_clock_gives_no_velocity(sample_dir):
     after = vo.register_frame(*frames[26], float(seq.timestamps[26]))
     assert after.status == "tracked" and after.velocity is not None
     assert np.linalg.norm(after.velocity[:3]) < 10  # rad/s: a hand-held camera, not 1/dt of a stamp glitch
+
+
+@pytest.mark.parametrize("keyframes", [False, True])
+def test_each_frame_is_moved_to_its_stamp_once_along_the_trajectory(sample_dir, keyframes):
+    """World poses at the stamps are the poses at the captures (the chain of each pair's estimate
+    between its two captures) with each frame moved once, by its own ``stamp_shift`` along its
+    ``stamp_twist``: a pair moves its reference frame exactly as that frame's own pair moved it,
+    also where the frame clock places its first frame (whose reference it has not placed)."""
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.odometry import OdometryConfig, VisualOdometry
+
+    seq = TumSequence(sample_dir)
+    vo = VisualOdometry(seq.camera, OdometryConfig().replace(tracking={"keyframes": keyframes}))
+    captured, moved = {}, 0
+    for i in range(28):
+        step = vo.register_frame(*seq.load(i), float(seq.timestamps[i]))
+        assert step.has_pose
+        if not step.has_relative_pose:
+            captured[step.timestamp] = gtsam.Pose3()
+            continue
+        captured[step.timestamp] = captured[step.ref_timestamp].compose(step.result.pose)
+        shift = np.zeros(6) if step.stamp_shift is None else step.stamp_shift * step.stamp_twist
+        at_stamp = captured[step.timestamp].compose(gtsam.Pose3.Expmap(shift))
+        np.testing.assert_allclose(step.pose.matrix(), at_stamp.matrix(), atol=1e-9)
+        if step.stamp_shift is not None:
+            moved += 1
+            assert step.stamp_shift == step.clock_offset and step.clock_samples > 0
+        else:
+            assert step.clock_samples == 0  # a frame the clock placed is moved
+    assert moved >= 5
