@@ -171,13 +171,19 @@ def twist_change(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.nda
 
 
 def _change_and_noise(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray, noise_ref: np.ndarray,
-                      noise_cur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      noise_cur: np.ndarray, cross: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`twist_change` ``b`` (6,) and the covariance (6, 6) of its estimation noise, ``N_cur +
-    Ad(T^-1) N_ref Ad(T^-1)^T`` from the two twists' noise covariances ``noise_ref``/``noise_cur``."""
+    A N_ref A^T - A X - X^T A^T`` (``A = Ad(T^-1)``) from the two twists' noise covariances
+    ``noise_ref``/``noise_cur`` and their cross-covariance ``cross`` ``X = Cov(xi_ref, xi_cur)`` (6, 6;
+    zero if None: independent twists)."""
     import gtsam
 
     Ad = gtsam.Pose3(np.asarray(T_ref_cur, dtype=float)).inverse().AdjointMap()
-    return twist_change(T_ref_cur, twist_ref, twist_cur), noise_cur + Ad @ noise_ref @ Ad.T
+    noise = noise_cur + Ad @ noise_ref @ Ad.T
+    if cross is not None:
+        AX = Ad @ np.asarray(cross, dtype=float)
+        noise = noise - AX - AX.T
+    return twist_change(T_ref_cur, twist_ref, twist_cur), noise
 
 
 def _positive_part(M: np.ndarray) -> np.ndarray:
@@ -232,7 +238,8 @@ class TwistChanges:
     the change of the twist from one pair to the next (:func:`latency_basis`; each pair's mean
     twist lags its frame by half an interval, which cancels in the change) and ``N`` the part of
     ``b b^T`` the two pairs' estimation noise accounts for (their per-point covariances over
-    ``dt^2``); changes of consecutive pairs of equal length, per frame interval (a change between
+    ``dt^2``, and their cross-covariance through the middle frame's points, which enter the two
+    twists with opposite signs); changes of consecutive pairs of equal length, per frame interval (a change between
     pairs ``m`` intervals long counts ``1/m^2``), and a pair ``k`` intervals long gets ``k^2`` times
     the basis (odometry; against an older keyframe the measured change to the last posed frame,
     :func:`known_change_basis`, carried on over the pair, plus ``m^2`` times the basis over the ``m``
@@ -305,13 +312,15 @@ class TwistChanges:
             self.share = float(ISOTROPIC_SHARES[int(np.argmax(self._scores))])
 
     def add(self, T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray, noise_ref: np.ndarray,
-            noise_cur: np.ndarray, intervals: int = 1) -> None:
+            noise_cur: np.ndarray, intervals: int = 1, cross: np.ndarray | None = None) -> None:
         """Record the change between two consecutive pairs' mean twists (6,) (rad/s, m/s), each pair
         ``intervals`` frame intervals long (so their twists that far apart), per interval;
         ``T_ref,cur`` (4x4) is the later pair, ``noise_ref``/``noise_cur`` (6, 6) the covariances of
         the two twists' estimation noise ((rad/s)^2 and (m/s)^2 blocks: a pair's per-point
-        covariance over its interval squared)."""
-        change, noise = _change_and_noise(T_ref_cur, twist_ref, twist_cur, noise_ref, noise_cur)
+        covariance over its interval squared) and ``cross`` their cross-covariance (the shared middle
+        frame's, :func:`~covo_gtsam.frame_errors.shared_frame_covariance` over both intervals; None:
+        independent)."""
+        change, noise = _change_and_noise(T_ref_cur, twist_ref, twist_cur, noise_ref, noise_cur, cross)
         change, noise = change / intervals, noise / intervals**2
         if not (np.all(np.isfinite(change)) and np.all(np.isfinite(noise))):
             return

@@ -51,6 +51,20 @@ def transfer_gains(R: np.ndarray, t: np.ndarray, X_ref: np.ndarray, X_cur: np.nd
     return K, K @ -R
 
 
+def shared_frame_covariance(idx_a: np.ndarray, G_a: np.ndarray, idx_b: np.ndarray, G_b: np.ndarray,
+                            Q: np.ndarray) -> np.ndarray:
+    """Cross-covariance (6, 6) of two estimates that share one frame's points: the earlier pair's
+    gains ``G_a`` (N_a, 6, 3) for that frame's points (its current frame) and the later pair's ``G_b``
+    (N_b, 6, 3) (its reference frame), the points named by their feature indices ``idx_a``/``idx_b``;
+    ``sum_j G_a[j] Q[j] G_b[j]^T`` over the features in both (``Q`` (F, 3, 3): the frame's point
+    covariances by feature index). Consecutive pairs' estimates are not independent: the middle
+    frame's point noise moves the first as its current frame and the second as its reference."""
+    common, ia, ib = np.intersect1d(np.asarray(idx_a), np.asarray(idx_b), assume_unique=True, return_indices=True)
+    if common.size == 0:
+        return np.zeros((6, 6))
+    return np.einsum("nij,njk,nlk->il", G_a[ia], Q[common], G_b[ib])
+
+
 def depth_scale_basis(G: np.ndarray, X: np.ndarray) -> np.ndarray:
     """``B`` (6,) of a frame's depth-scale error: ``sum_i G_i X_i`` (per unit relative scale error)."""
     return (G @ X[:, :, None]).sum(axis=0)[:, 0]

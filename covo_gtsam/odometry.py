@@ -25,7 +25,8 @@ from .depth_drift import DepthDrift, drift_along
 from .errors import ConfigError, CovoError, EstimationError, InputError
 from .estimator import RelativePoseResult, estimate_relative_pose
 from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_change, depth_scale_basis,
-                           depth_time_basis, depth_time_shift, rolling_shutter_basis, transfer_gains)
+                           depth_time_basis, depth_time_shift, rolling_shutter_basis, shared_frame_covariance,
+                           transfer_gains)
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
@@ -60,12 +61,18 @@ class _PosedFrame:
 
 class _TwistSpan(NamedTuple):
     """A frame's twist was taken over the motion ``motion`` (T_start,frame) from the frame stamped
-    ``start``, ``intervals`` frame intervals long; ``noise``: the twist's estimation noise (6x6)."""
+    ``start``, ``intervals`` frame intervals long; ``noise``: the twist's estimation noise (6x6).
+    A twist of the frame's own pair also keeps its response to the frame's points (``features``:
+    their feature indices, ``gains``: (N, 6, 3), per second) for the next pair's, and ``cross``, its
+    cross-covariance with the twist before it (6x6), which shares the reference frame's points."""
 
     start: float
     motion: gtsam.Pose3
     noise: np.ndarray
     intervals: int
+    features: np.ndarray | None = None
+    gains: np.ndarray | None = None
+    cross: np.ndarray | None = None
 
 
 def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
@@ -76,6 +83,19 @@ def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
     if not step.flagged:
         return step.velocity
     return None if step.stamp_twist is step.velocity else step.stamp_twist
+
+
+def _between_captures(a: OdometryStep, b: OdometryStep) -> gtsam.Pose3:
+    """``T_a,b`` between the two posed frames' captures: their poses (at their stamps) each moved
+    back by what its pair moved it (``stamp_shift`` along ``stamp_twist``), as the pairs' own
+    estimates between captures are taken."""
+
+    def at_capture(step: OdometryStep) -> gtsam.Pose3:
+        if step.stamp_shift is None:
+            return step.pose
+        return step.pose.compose(gtsam.Pose3.Expmap(-step.stamp_shift * np.asarray(step.stamp_twist, dtype=float)))
+
+    return at_capture(a).between(at_capture(b))
 
 
 def _repeats(ref: FrameData, frame: FrameData) -> bool:
@@ -370,10 +390,12 @@ class VisualOdometry(DeprecatedStepAccess):
             return step
         twists = self._frame_twists(res.pose, dt, ref_step, timestamp) if dt > 0 else None
         step.velocity = None if twists is None else twists[1]
+        M = res.pose.matrix()  # the estimate's response to each point of either frame
+        gains = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
-            self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp)
+            self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp, ref, pairs, gains)
         step.error_bases, b = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt,
-                                                timestamp, r_cur)
+                                                timestamp, r_cur, gains)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -433,17 +455,25 @@ class VisualOdometry(DeprecatedStepAccess):
         dt_last = self._capture_interval(last, timestamp)[0]
         if not dt_last > 0:
             return None
-        return last, ref_step.pose.between(last.pose).inverse().compose(T), dt_last
+        return last, _between_captures(ref_step, last).inverse().compose(T), dt_last
 
-    def _twist_span(self, res: RelativePoseResult, ref_step: OdometryStep, dt: float, timestamp: float
-                    ) -> _TwistSpan:
-        """What the frame's twist (:meth:`_frame_twists`) was taken over: the pair itself, or against
-        an older keyframe the motion since the last posed frame, whose noise is that of the two
-        pairs to the keyframe it is taken from (as independent; C_points / dt^2 each)."""
+    def _twist_span(self, res: RelativePoseResult, ref_step: OdometryStep, dt: float, timestamp: float,
+                    ref: FrameData, pairs: PointPairs, gains: tuple[np.ndarray, np.ndarray]) -> _TwistSpan:
+        """What the frame's twist (:meth:`_frame_twists`) was taken over: the pair itself (noise
+        C_points / dt^2; with the reference frame's own twist, from the pair before, it shares that
+        frame's points: ``cross``), or against an older keyframe the motion since the last posed
+        frame, whose noise is that of the two pairs to the keyframe it is taken from (as
+        independent; C_points / dt^2 each)."""
         since = self._since_last(res.pose, ref_step, timestamp)
         if since is None:
+            G_ref, G_cur = gains
+            before = self._twist_noise.get(ref_step.timestamp)
+            cross = None
+            if before is not None and before.gains is not None:
+                cross = shared_frame_covariance(before.features, before.gains, pairs.idx_ref, G_ref / dt,
+                                                ref.covariances)
             return _TwistSpan(ref_step.timestamp, res.pose, res.covariance / dt**2,
-                              self.config.sensor.frame_intervals(dt))
+                              self.config.sensor.frame_intervals(dt), pairs.idx_cur, G_cur / dt, cross)
         last, T, dt_last = since
         same_keyframe = last.ref_timestamp == ref_step.timestamp and last.result is not None
         C_last = last.result.covariance if same_keyframe else res.covariance
@@ -584,7 +614,8 @@ class VisualOdometry(DeprecatedStepAccess):
         only two consecutive pairs of the same number of frame intervals (per interval, so a camera
         that drops every other frame still has the term), neither flagged by the integrity check.
         The noise subtracted is each twist's share of the estimator's own covariance,
-        ``C_points / dt^2`` (not scaled by kappa, as in the fit)."""
+        ``C_points / dt^2`` (not scaled by kappa, as in the fit), and what the two share through the
+        middle frame's points (``_TwistSpan.cross``), which moves the change twice."""
         prev, cur = self._twist_noise.get(last.timestamp), self._twist_noise.get(step.timestamp)
         self._twist_noise = {step.timestamp: cur} if cur is not None else {}
         if (prev is None or cur is None or prev.intervals != cur.intervals
@@ -592,7 +623,7 @@ class VisualOdometry(DeprecatedStepAccess):
                 or step.velocity is None or last.velocity is None):
             return
         self._twist_changes.add(cur.motion.matrix(), last.velocity, step.velocity, prev.noise, cur.noise,
-                                cur.intervals)
+                                cur.intervals, cur.cross)
 
     def _capture_interval(self, ref_step: OdometryStep, timestamp: float) -> tuple[float, float, float | None]:
         """``(dt, r_ref, r_cur)``: the time between the two frames' captures (s) and the times (s) by
@@ -620,14 +651,16 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
-                     dt: float, timestamp: float, r_cur: float | None) -> tuple[dict, np.ndarray]:
+                     dt: float, timestamp: float, r_cur: float | None, gains: tuple[np.ndarray, np.ndarray]
+                     ) -> tuple[dict, np.ndarray]:
         """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`) and its
         response ``b`` (6,) to the current frame's depths scaled by ``1 + e`` (per unit ``e``);
         ``twists`` are the camera's twists at the two frames
         (:func:`~covo_gtsam.rolling_shutter.frame_twists`), None without motion; ``r_cur`` the current
-        frame's move to its stamp (:meth:`_capture_interval`)."""
+        frame's move to its stamp (:meth:`_capture_interval`); ``gains`` the estimate's response to
+        each point of the reference and the current frame (:func:`~covo_gtsam.frame_errors.transfer_gains`)."""
         M = T.matrix()
-        G_ref, G_cur = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
+        G_ref, G_cur = gains
         b_ref, b_cur = depth_scale_basis(G_ref, X_ref), depth_scale_basis(G_cur, X_cur)
         bases = {"depth_scale": np.outer(b_ref, b_ref) + np.outer(b_cur, b_cur)}
         # the camera's recent translation per interval, from the last posed frame (not this pair)
@@ -725,7 +758,7 @@ class VisualOdometry(DeprecatedStepAccess):
         span_ref, span_last = self._posed_twists.get(ref_step.timestamp), self._posed_twists.get(last.timestamp)
         if twist_ref is None or twist_last is None or span_ref is None or span_last is None:
             return None
-        B = known_change_basis(ref_step.pose.between(last.pose).matrix(), twist_ref, twist_last, span_ref.noise,
+        B = known_change_basis(_between_captures(ref_step, last).matrix(), twist_ref, twist_last, span_ref.noise,
                                span_last.noise)
         R = T_last_cur.rotation().matrix().T  # the last frame's axes in the current frame's
         B[:3, :3] = R @ B[:3, :3] @ R.T

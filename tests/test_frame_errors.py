@@ -249,3 +249,46 @@ def test_depth_read_change_is_what_a_later_depth_image_reads_at_the_pixel():
     hole = D0.copy()
     hole[:, :] = 0.0  # no depth to read: only the point's own change is left
     assert np.allclose(depth_read_change(hole, uv, X, twist, shift, camera.fx, camera.fy), own)
+
+
+def test_consecutive_pairs_share_the_middle_frames_noise_as_the_cross_covariance_says():
+    """Three frames, each measured once: the pairs (0, 1) and (1, 2) share frame 1's measured points,
+    which move the first pair's twist as its current frame and the second's as its reference.
+    Monte Carlo of the package's estimator: the cross-covariance of the two twists is
+    ``shared_frame_covariance``, and the change of the twist from one pair to the next has the
+    noise ``N_b + A N_a A^T - A X - X^T A^T`` (about 1.5 times what independent twists give)."""
+    from covo_gtsam.calibration import _change_and_noise
+    from covo_gtsam.frame_errors import shared_frame_covariance
+
+    rng = np.random.default_rng(11)
+    scene = make_scene(SimulationConfig(num_points=150, motion=SMALL_MOTION), rng)
+    T = scene.T01
+    X0, X1 = scene.X0, scene.X1
+    X2 = (X1 - T[:3, 3]) @ T[:3, :3]  # the same motion again: frame 2 = frame 1 moved by T01
+    ok = X2[:, 2] > 0.5
+    X0, X1, X2 = X0[ok], X1[ok], X2[ok]
+    model, dt = PointNoiseModel(), 1 / 30
+    Q = [model.point_covariances(scene.camera, scene.camera.project(X), X[:, 2]) for X in (X0, X1, X2)]
+    Ga = transfer_gains(T[:3, :3], T[:3, 3], X0, X1, Q[0], Q[1])
+    Gb = transfer_gains(T[:3, :3], T[:3, 3], X1, X2, Q[1], Q[2])
+    idx = np.arange(len(X1))
+    cross = shared_frame_covariance(idx, Ga[1] / dt, idx, Gb[0] / dt, Q[1])
+    xa, xb = [], []
+    for _ in range(500):
+        (Y0, R0), (Y1, R1), (Y2, R2) = (noisy_measurements(X, scene.camera, model, rng) for X in (X0, X1, X2))
+        xa.append(gtsam.Pose3.Logmap(estimate_relative_pose(Y0, Y1, R0, R1).pose) / dt)
+        xb.append(gtsam.Pose3.Logmap(estimate_relative_pose(Y1, Y2, R1, R2).pose) / dt)
+    xa, xb = np.array(xa), np.array(xb)
+    emp_cross = (xa - xa.mean(0)).T @ (xb - xb.mean(0)) / (len(xa) - 1)
+    scale = np.sqrt(np.outer(np.diag(np.cov(xa.T)), np.diag(np.cov(xb.T))))
+    assert np.abs(emp_cross - cross).max() / scale.max() < 0.12  # the correlations agree
+    assert np.abs(cross).max() / scale.max() > 0.3  # and are far from zero
+    Na = np.einsum("nij,njk,nlk->il", Ga[0], Q[0], Ga[0]) + np.einsum("nij,njk,nlk->il", Ga[1], Q[1], Ga[1])
+    Nb = np.einsum("nij,njk,nlk->il", Gb[0], Q[1], Gb[0]) + np.einsum("nij,njk,nlk->il", Gb[1], Q[2], Gb[1])
+    Ad = gtsam.Pose3(T).inverse().AdjointMap()
+    change = xb - xa @ Ad.T
+    emp = np.trace(np.cov(change.T)[:3, :3])
+    with_cross = np.trace(_change_and_noise(T, xa[0], xb[0], Na / dt**2, Nb / dt**2, cross)[1][:3, :3])
+    independent = np.trace(_change_and_noise(T, xa[0], xb[0], Na / dt**2, Nb / dt**2)[1][:3, :3])
+    assert 0.9 < emp / with_cross < 1.1
+    assert emp / independent > 1.3
