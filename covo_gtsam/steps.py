@@ -52,9 +52,9 @@ class OdometryStep:
     :meth:`~covo_gtsam.config.TrackingConfig.gap_noise`. ``velocity`` is the camera's mean body
     twist ``[omega, v]`` (rad/s, m/s) over the pair, ``Log(T_ref,cur) / dt`` of the 3D-3D estimate
     (before the depth-drift correction moves ``relative``). ``quality`` is the
-    pair's integrity statistic (:mod:`covo_gtsam.integrity`; about chi2(6) for a typical pair of
-    the run, a pair over k frame intervals taken on the scale of one, None when it could not be
-    formed) and ``flagged`` tells that it exceeded
+    pair's integrity statistic (:mod:`covo_gtsam.integrity`: the run's median pair reads chi2(6)'s
+    median, 5.35, with a heavier tail; a pair over k frame intervals taken on the scale of one; None
+    when it could not be formed) and ``flagged`` tells that it exceeded
     ``sensor.integrity_threshold``: the covariance then also covers the disagreement of the pair's
     two depth-free estimates. A back end can gate on either.
     """
