@@ -149,9 +149,9 @@ def ground_truth_lookup(seq) -> dict[float, np.ndarray]:
 
 
 def _unassociated(steps: Sequence[OdometryStep], seq) -> list[dict]:
-    """The colour frames of ``rgb.txt`` within the processed frames' time span that have no depth
-    image (:attr:`TumSequence.unassociated`), each with the reason: no frame of the list is dropped
-    without a word."""
+    """The colour frames of ``rgb.txt`` up to the last processed frame (those before the first
+    included) that have no depth image (:attr:`TumSequence.unassociated`), each with the reason: no
+    frame of the list is dropped without a word."""
     listed = getattr(seq, "unassociated", None) or []
     if not steps or not listed:
         return []
