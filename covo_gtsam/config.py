@@ -161,8 +161,8 @@ class SensorConfig:
         10.0, "the camera's angular acceleration, RMS over its axes, that the latency and rolling-shutter terms "
         "take until the run has measured a change of its twist (a prior: a hand-held camera)", "rad/s^2",
         "non-negative", maximum=1e4)
-    integrity_threshold: float = number(50.0, "flag a pair whose integrity statistic exceeds this (the run's "
-                                        "median pair reads 5.35, chi2(6)'s median)", "statistic")
+    integrity_threshold: float = number(50.0, "flag a pair whose integrity statistic exceeds this (a pair at the "
+                                        "run's running median reads 5.35, chi2(6)'s median)", "statistic")
 
     def __post_init__(self) -> None:
         check_settings(self, self.section)

@@ -235,8 +235,8 @@ class IntegrityScale:
     (its depth errors are partly systematic), by a factor that depends on the sensor. The typical
     pair is taken as consistent: the scale is the median of the statistics of the last ``window``
     pairs (each as the odometry gives it: on the scale of one frame interval, :func:`per_span`) over
-    the median of chi2(6), and :meth:`normalise` divides by it, so the run's median pair reads
-    chi2(6)'s median and a pair whose depth-free estimates disagree far more than the run's usual
+    the median of chi2(6), and :meth:`normalise` divides by it, so a pair at the run's running median
+    (of the pairs up to it) reads chi2(6)'s median and a pair whose depth-free estimates disagree far more than the run's usual
     stands out. The first pairs of a run set the scale and are not flagged. Its tail is heavier than
     chi2(6)'s by construction: ``H`` whitens each depth-free estimate by its own covariance, while its
     difference from the 3D-3D estimate, which shares the points, varies almost along one direction

@@ -52,8 +52,9 @@ RELATIVE_HEADER = (
     "#   reference camera frame\n"
     "# c00 ... c55: 6x6 covariance, row-major, in GTSAM's Pose3 tangent order [rx ry rz tx ty tz] (rad, m),\n"
     "#   right (body) perturbation T_true = T_est * Exp(xi)\n"
-    "# quality: the pair's integrity statistic, about chi2(6) for a typical pair of the run (a pair over k\n"
-    "#   frame intervals taken on the scale of one), larger for a pair\n"
+    "# quality: the pair's integrity statistic over the run's scale so far (a pair at the run's running\n"
+    "#   median reads 5.35, chi2(6)'s median; a pair over k frame intervals taken on the scale of one),\n"
+    "#   larger for a pair\n"
     "#   whose depth-free estimates disagree with it (flagged above the configured threshold, 50 by default;\n"
     "#   its covariance then covers the disagreement); -1 when it could not be formed\n"
 )

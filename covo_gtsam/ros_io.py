@@ -174,7 +174,8 @@ def check_bag_stamps(stamps: Sequence[float], fmt: str, what: str = "the stamps"
 def _nanoseconds(t: float, exact: Mapping[float, int] | None = None) -> int:
     """Stamp ``t`` (s) in integer nanoseconds: ``exact``'s value for it where given (a bag's own
     stamps, which a float in seconds holds only to about 0.1 us today), else the shortest decimal
-    that reads back as ``t`` (a TUM stamp as its file wrote it, to the nanosecond), rounded."""
+    that reads back as ``t``: a TUM stamp as its file wrote it (exact to the nanosecond for up to
+    about 7 decimals, what such a float holds; TUM's have 6), rounded."""
     if exact is not None and float(t) in exact:
         return int(exact[float(t)])
     return int((Decimal(repr(float(t))) * 1_000_000_000).to_integral_value())

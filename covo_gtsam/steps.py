@@ -52,8 +52,8 @@ class OdometryStep:
     :meth:`~covo_gtsam.config.TrackingConfig.gap_noise`. ``velocity`` is the camera's mean body
     twist ``[omega, v]`` (rad/s, m/s) over the pair, ``Log(T_ref,cur) / dt`` of the 3D-3D estimate
     (before the depth-drift correction moves ``relative``). ``quality`` is the
-    pair's integrity statistic (:mod:`covo_gtsam.integrity`: the run's median pair reads chi2(6)'s
-    median, 5.35, with a heavier tail; a pair over k frame intervals taken on the scale of one; None
+    pair's integrity statistic (:mod:`covo_gtsam.integrity`: a pair at the run's running median reads
+    chi2(6)'s median, 5.35, and the tail is heavier; a pair over k frame intervals taken on the scale of one; None
     when it could not be formed) and ``flagged`` tells that it exceeded
     ``sensor.integrity_threshold``: the covariance then also covers the disagreement of the pair's
     two depth-free estimates. A back end can gate on either.
@@ -75,7 +75,8 @@ class OdometryStep:
     stamp_twist: np.ndarray | None = field(default=None, repr=False)
     #: the time (s) this frame's pose was moved from its capture to its stamp by (its offset from the
     #: frame clock); None: not moved, the pose is taken at the stamp (before the clock places the
-    #: stamps, and for a frame without a pair)
+    #: stamps, for a frame without a pair or without an interval to its reference, and where the
+    #: offset would change the interval to its reference by more than half)
     stamp_shift: float | None = field(default=None, repr=False)
     quality: float | None = None
     flagged: bool = False

@@ -125,5 +125,5 @@ def test_each_frame_is_moved_to_its_stamp_once_along_the_trajectory(sample_dir, 
             moved += 1
             assert step.stamp_shift == step.clock_offset and step.clock_samples > 0
         else:
-            assert step.clock_samples == 0  # a frame the clock placed is moved
+            assert step.clock_samples == 0  # here every frame the clock placed is moved
     assert moved >= 5
