@@ -294,6 +294,7 @@ def run_sequence(
     config = config or OdometryConfig()
     vo = VisualOdometry(seq.camera if camera is None else camera, config)
     out = check_output_dir(out_dir)
+    n = len(seq) if max_frames is None else min(len(seq), max_frames)
     with FolderLock(out):
         from .plots import RUN_PLOTS
 
@@ -301,14 +302,13 @@ def run_sequence(
 
         inputs = (getattr(seq, "path", None),)
         if bag_out is not None:  # checked before anything is removed; the bag writer removes covo's own
-            n = len(seq) if max_frames is None else min(len(seq), max_frames)
             check_bag_stamps(seq.timestamps[:n], bag_out, f"{getattr(seq, 'path', seq.name)}: a frame stamp")
             clear_bag_output(out, bag_out, inputs=inputs, remove=False)
         prepare_outputs(out, RUN_FILES, ("plots", RUN_PLOTS), write_figures=plots)
         remove_earlier_bags(out, bag_out, inputs)  # of the other format, or of any without --bag-out
         save_config(config, out / "config.toml", header=f"covo-gtsam {__version__}: the configuration of this run")
         with kernel_threads(1):
-            return _run(vo, StepHistory(keep_error_bases), seq, out, config, max_frames, plots, progress, bag_out)
+            return _run(vo, StepHistory(keep_error_bases), seq, out, config, n, plots, progress, bag_out)
 
 
 def write_frame_ground_truth(path: Path, seq, n: int) -> bool:
@@ -335,10 +335,9 @@ def _naming_the_depth_file(step, seq, i: int):
 
 
 def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, config: OdometryConfig,
-         max_frames: int | None, plots: bool, progress: bool, bag_out: str | None) -> RunResult:
-    """The frame loop and the results of :func:`run_sequence`, in a checked and locked folder; the
-    steps go to ``history``."""
-    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+         n: int, plots: bool, progress: bool, bag_out: str | None) -> RunResult:
+    """The frame loop over the first ``n`` frames and the results of :func:`run_sequence`, in a
+    checked and locked folder; the steps go to ``history``."""
     start = time.perf_counter()
     load = _frame_loader(seq, n, config.sensor.depth_scale, vo.camera)
     stamps = getattr(seq, "depth_timestamps", None)
