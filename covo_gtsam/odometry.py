@@ -313,6 +313,8 @@ class VisualOdometry(DeprecatedStepAccess):
         if step.status is StepStatus.RELATIVE_POSE:
             if step.integrity_statistic is not None:
                 self._integrity.add(self._per_span(step))
+            # counted for the pair kept (in keyframe mode it may have been tried against the old keyframe first)
+            self._depth_jumps += step.depth_jump_s != 0.0
             last = self._last.step
             if step.timestamp > last.timestamp:
                 self._velocity = (last.pose.between(step.pose), step.timestamp - last.timestamp)
@@ -405,7 +407,7 @@ class VisualOdometry(DeprecatedStepAccess):
             step.reason = "the pair's covariance is not finite and positive definite"
             return step
         step.status = StepStatus.RELATIVE_POSE
-        self._depth_jumps += bool(self._depth_jump(ref, frame))
+        step.depth_jump_s = self._depth_jump(ref, frame)
         check = self._integrity_check(step, res.pose, X_ref, X_cur, pairs)
         # the pose reported moves by the depth's drift; the twists stay the 3D-3D estimate's, as the
         # next pair's rolling-shutter compensation takes them (a moved twist would change by the

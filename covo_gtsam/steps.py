@@ -78,6 +78,9 @@ class OdometryStep:
     #: stamps, for a frame without a pair or without an interval to its reference, and where the
     #: offset would change the interval to its reference by more than half)
     stamp_shift: float | None = field(default=None, repr=False)
+    #: the change (s) of the colour-depth capture offset from the reference frame in whole depth
+    #: periods: the two depth images were read that far apart (the ``depth_jump`` term); 0 for most pairs
+    depth_jump_s: float = field(default=0.0, repr=False)
     quality: float | None = None
     flagged: bool = False
     integrity_statistic: float | None = None

@@ -9,7 +9,8 @@ import pytest
 SWITCHED = range(30, 237, 12)
 
 
-def _switched_run(fr1_rpy_dir, depth_jump_factor: float) -> tuple[np.ndarray, np.ndarray, int, int, float]:
+def _switched_run(fr1_rpy_dir, depth_jump_factor: float, keyframes: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray, int, int, float]:
     """fr1_rpy with the frames of :data:`SWITCHED` given the previous frame's depth image and its
     depth stamp: translation NEES of each pair with ground truth under the reported covariance
     (with the reference's jitter), whether the pair's depth images are a period apart, of all
@@ -22,7 +23,8 @@ def _switched_run(fr1_rpy_dir, depth_jump_factor: float) -> tuple[np.ndarray, np
 
     seq = TumSequence(fr1_rpy_dir)
     lookup = ground_truth_lookup(seq)
-    vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(sensor={"depth_jump_factor": depth_jump_factor}))
+    vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(sensor={"depth_jump_factor": depth_jump_factor},
+                                                                  tracking={"keyframes": keyframes}))
     steps = []
     for i in range(len(seq.timestamps)):
         j = i - 1 if i in SWITCHED else i
@@ -38,6 +40,7 @@ def _switched_run(fr1_rpy_dir, depth_jump_factor: float) -> tuple[np.ndarray, np
 
     jump = np.array([switched(s) for s in kept])
     posed = sum(switched(s) for s in steps if s.has_relative_pose)
+    assert all((s.depth_jump_s != 0) == switched(s) for s in steps if s.has_relative_pose)
     rms = float(np.sqrt(np.mean(np.sum(err[jump, 3:] ** 2, axis=1))))
     return nees(err[:, 3:], covs[:, 3:, 3:]), jump, posed, vo.self_calibration()["depth_period_jumps"], rms
 
@@ -58,6 +61,18 @@ def test_pairs_with_a_switched_depth_image_are_covered_on_real_frames(fr1_rpy_di
     assert nt[~jump].mean() < 3.5  # the term is zero there: the rest of the run as before
     off, *_ = _switched_run(fr1_rpy_dir, 0.0)
     assert off[jump].mean() > 5.0  # uncovered without the term
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_keyframe_mode_counts_each_kept_pair_a_period_apart_once(fr1_rpy_dir):
+    """In keyframe mode a frame is first matched to the old keyframe and, with too few pairs, again
+    to the last posed frame; only the pair kept counts in ``depth_period_jumps``. With the switched
+    depth images of :data:`SWITCHED`, 16 kept pairs are a period apart; counting every pair tried
+    reported 20."""
+    _, _, posed, reported, _ = _switched_run(fr1_rpy_dir, 1.0, keyframes=True)
+    assert posed >= 10
+    assert reported == posed
 
 
 @pytest.mark.realdata
