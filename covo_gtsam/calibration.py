@@ -203,6 +203,19 @@ def known_change_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: 
     return out
 
 
+def central_change_basis(T_ref_cur: np.ndarray, twist_before: np.ndarray, twist_after: np.ndarray,
+                         noise_before: np.ndarray, noise_after: np.ndarray) -> np.ndarray:
+    """Basis (6, 6) of the ``latency`` term of a pair ``T_ref,cur`` (4x4) from the change of the twist
+    across it, known one frame later: the twist of the pair before (at the reference frame; noise
+    ``noise_before``) and of the pair after (``twist_after``, at the current frame). A pair's mean
+    twist lags its end frame by half an interval, so the twist's change from the pair's reference
+    frame to its current frame is about half the change from the pair before to the pair after:
+    ``(b b^T - N) / 4`` in the current frame's axes (:func:`twist_change`, ``N`` its estimation
+    noise; the two twists share no frame), all six axes, clipped to positive semidefinite."""
+    b, noise = _change_and_noise(T_ref_cur, twist_before, twist_after, noise_before, noise_after)
+    return 0.25 * _positive_part(np.outer(b, b) - noise)
+
+
 def latency_basis(T_ref_cur: np.ndarray, twist_ref: np.ndarray, twist_cur: np.ndarray) -> np.ndarray:
     """Basis (6, 6) ``b b^T`` of the ``latency`` term for known twists at the two frames
     (:func:`twist_change`)."""

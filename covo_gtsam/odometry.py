@@ -15,7 +15,7 @@ from typing import NamedTuple
 import gtsam
 import numpy as np
 
-from .calibration import TwistChanges, known_change_basis, span_basis, stamp_error_basis
+from .calibration import TwistChanges, central_change_basis, known_change_basis, span_basis, stamp_error_basis
 from .camera import Camera
 from .choices import MotionModel
 from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
@@ -73,6 +73,21 @@ class _TwistSpan(NamedTuple):
     features: np.ndarray | None = None
     gains: np.ndarray | None = None
     cross: np.ndarray | None = None
+
+
+class _Provisional(NamedTuple):
+    """A pair whose latency term the next pair settles (``sensor.latency_look_ahead``): its step, its
+    reference frame's step (for the pose covariance), its motion between the captures, the twist of
+    the pair before it with that twist's noise, its frame intervals, and the adjoint (6x6) its
+    covariance was moved from the captures to the stamps with."""
+
+    step: OdometryStep
+    ref_step: OdometryStep
+    motion: gtsam.Pose3
+    twist_before: np.ndarray
+    noise_before: np.ndarray
+    intervals: int
+    restamp: np.ndarray
 
 
 def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
@@ -145,6 +160,9 @@ class VisualOdometry(DeprecatedStepAccess):
         self._twist_changes = TwistChanges(self.config.sensor.twist_history)
         #: stamp of a frame -> the span its twist was taken over (for the latency term's history)
         self._twist_noise: dict[float, _TwistSpan] = {}
+        #: the last pair, while the next may still settle its latency term; the pair being registered
+        self._provisional: _Provisional | None = None
+        self._candidate: _Provisional | None = None
         #: stamp of the last posed frame and of the keyframe -> what their twists were taken over
         self._posed_twists: dict[float, _TwistSpan] = {}
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
@@ -197,7 +215,10 @@ class VisualOdometry(DeprecatedStepAccess):
         the reference frame (the keyframe with ``tracking.keyframes``, else the previous posed frame;
         ``step.ref_timestamp``), or why it has none. After a lost frame the next is matched to the
         last posed frame; after ``tracking.restart_after`` lost frames in a row an unmatched frame
-        starts a new segment.
+        starts a new segment. With ``sensor.latency_look_ahead`` (the default) a pair's covariance
+        is final one frame later: registering the next frame may revise the returned step's
+        ``covariance``, ``pose_covariance`` and latency basis in place (``step.settled`` tells;
+        :func:`~covo_gtsam.pipeline.run_sequence` writes each step once settled).
 
         ``image``: as in :meth:`prepare`, or its :class:`FrameData` (e.g. made on another thread;
         ``depth`` is then ignored). ``timestamp`` (s): finite and not earlier than the previous
@@ -307,6 +328,12 @@ class VisualOdometry(DeprecatedStepAccess):
         """Every change of the odometry's state by a registered frame (after the frame clock's)."""
         step.clock_offset = self._clock_offset or 0.0
         step.clock_samples = self._clock.samples if self._clock_offset is not None else 0
+        if self._provisional is not None:  # the next frame came: its pair (if any) settled the last one's
+            self._provisional.step.settled = True
+        candidate, self._candidate = self._candidate, None
+        self._provisional = candidate if candidate is not None and candidate.step is step else None
+        if self._provisional is not None:
+            step.settled = False
         if step.clock_samples:
             self._placed_offsets.append(step.clock_offset)
         self._keyframe = keyframe
@@ -413,7 +440,9 @@ class VisualOdometry(DeprecatedStepAccess):
         # next pair's rolling-shutter compensation takes them (a moved twist would change by the
         # correction over one interval there, a spurious change of the camera's motion)
         res = self._corrected_for_drift(step, res, check, b, dt)
-        self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
+        self._settle(ref_step, step)
+        Ad = self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
+        self._candidate = self._provisional_pair(step, ref_step, Ad)
         return step
 
     def _bearings_consensus(self, ref: FrameData, frame: FrameData, pairs: PointPairs) -> int:
@@ -587,10 +616,12 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _pose_between_stamps(self, step: OdometryStep, res: RelativePoseResult, ref_step: OdometryStep,
                              twists: tuple[np.ndarray, np.ndarray] | None, r_ref: float, r_cur: float | None
-                             ) -> None:
+                             ) -> np.ndarray:
         """``step``'s relative pose moved from the captures to the stamps (by ``r_ref``, ``r_cur``:
-        :meth:`_capture_interval`), and its pose composed onto the reference's."""
+        :meth:`_capture_interval`), and its pose composed onto the reference's. Returns the adjoint
+        (6x6) the covariance was moved with (the identity where the pose was not moved)."""
         step.relative = res.pose
+        Ad = np.eye(6)
         if twists is not None:
             # a flagged pair's twist is likely wrong (by metres per second): its frame moves to its
             # stamp with its reference's twist instead
@@ -610,6 +641,41 @@ class VisualOdometry(DeprecatedStepAccess):
         step.pose = ref_step.pose.compose(step.relative)
         step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, step.relative,
                                                   step.covariance)
+        return Ad
+
+    def _provisional_pair(self, step: OdometryStep, ref_step: OdometryStep, Ad: np.ndarray) -> _Provisional | None:
+        """``step`` as a pair whose latency term the next pair may settle (:meth:`_settle`): frame to
+        frame, with ``sensor.latency_look_ahead``, not flagged, with its own twist and the pair
+        before's (trusted, with its noise) over as many frame intervals; else None."""
+        if not self.config.sensor.latency_look_ahead or self.config.tracking.keyframes or step.flagged:
+            return None
+        span, before = self._twist_noise.get(step.timestamp), self._twist_noise.get(ref_step.timestamp)
+        twist_before = _trusted_velocity(ref_step)
+        if (span is None or before is None or twist_before is None or step.velocity is None or ref_step.flagged
+                or span.start != ref_step.timestamp or before.intervals != span.intervals):
+            return None
+        return _Provisional(step, ref_step, span.motion, np.asarray(twist_before, dtype=float), before.noise,
+                            span.intervals, Ad)
+
+    def _settle(self, ref_step: OdometryStep, step: OdometryStep) -> None:
+        """The latency term of the pair ending at ``ref_step`` taken from the change of the twist
+        across it (:func:`~covo_gtsam.calibration.central_change_basis`: ``step``'s twist minus the
+        pair before's) in place of the recent changes' mean; its covariance, latency basis and pose
+        covariance revised (it is the last posed frame: nothing was composed onto it yet). Only
+        where ``step`` is a trusted pair over as many intervals, right after it."""
+        prov = self._provisional
+        span = self._twist_noise.get(step.timestamp)
+        if (prov is None or prov.step is not ref_step or step.flagged or step.velocity is None or span is None
+                or span.start != ref_step.timestamp or span.intervals != prov.intervals):
+            return
+        B = central_change_basis(prov.motion.matrix(), prov.twist_before, step.velocity, prov.noise_before,
+                                 span.noise)
+        B = prov.restamp @ B @ prov.restamp.T
+        pair = prov.step
+        pair.covariance = pair.covariance + self.config.sensor.latency_sigma_s**2 * (B - pair.error_bases["latency"])
+        pair.error_bases = {**pair.error_bases, "latency": B}
+        pair.pose_covariance = compose_covariance(prov.ref_step.pose, prov.ref_step.pose_covariance, pair.relative,
+                                                  pair.covariance)
 
     def _add_twist_change(self, last: OdometryStep, step: OdometryStep) -> None:
         """The change of the twist from ``last``'s pair to ``step``'s into the latency term's history:

@@ -369,6 +369,20 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
             bar = Bar(total=n, desc=seq.name, unit="frame", dynamic_ncols=True)
         with TrajectoryWriter(out / "trajectory.txt") as traj_w, RelativePoseWriter(out / "relative.txt") as rel_w, \
                 G2oWriter(out / "graph.g2o") as g2o_w:
+
+            def write(i: int, step) -> None:
+                """A posed step into the outputs, once settled (the next frame may revise its covariance)."""
+                t = step.timestamp
+                traj_w.write(t, step.pose.matrix())
+                g2o_w.vertex(i, step.pose.matrix())
+                index_of[t] = i
+                if step.has_relative_pose:
+                    rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance, step.quality)
+                    g2o_w.edge(index_of[step.ref_timestamp], i, step.relative.matrix(), step.covariance)
+                if bag is not None:
+                    bag.write(step)
+
+            pending = None  # (frame index, step): the last posed step, written when the next frame settles it
             try:
                 for i in range(n):
                     check_interrupt()  # a Ctrl-C that a finalizer swallowed
@@ -379,23 +393,23 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
                     else:
                         step = vo.register_frame(frame, timestamp=t)
                     history.add(_naming_the_depth_file(step, seq, i))
+                    if pending is not None:
+                        settled, pending = pending, None
+                        write(*settled)
                     if step.has_pose:
-                        traj_w.write(t, step.pose.matrix())
-                        g2o_w.vertex(i, step.pose.matrix())
-                        index_of[t] = i
-                        if step.has_relative_pose:
-                            rel_w.write(step.ref_timestamp, t, step.relative.matrix(), step.covariance, step.quality)
-                            g2o_w.edge(index_of[step.ref_timestamp], i, step.relative.matrix(), step.covariance)
-                        if bag is not None:
-                            bag.write(step)
+                        pending = (i, step)
                     else:
                         lost_count += 1
                     if bar is not None:
                         bar.set_postfix(lost=lost_count, pairs=step.num_pairs, refresh=False)
                         bar.update(1)
             finally:
-                if bag is not None:
-                    bag.close()
+                try:
+                    if pending is not None:  # the last posed step (also of an interrupted run), as it stands
+                        write(*pending)
+                finally:
+                    if bag is not None:
+                        bag.close()
     if bar is not None:
         bar.close()
     elapsed = time.perf_counter() - start

@@ -81,6 +81,10 @@ class OdometryStep:
     #: the change (s) of the colour-depth capture offset from the reference frame in whole depth
     #: periods: the two depth images were read that far apart (the ``depth_jump`` term); 0 for most pairs
     depth_jump_s: float = field(default=0.0, repr=False)
+    #: False while registering the next frame may still revise ``covariance``, ``pose_covariance``
+    #: and ``error_bases["latency"]`` (``sensor.latency_look_ahead``: the latency term is then taken
+    #: from the change of the twist across the pair, the next pair's twist minus the one before)
+    settled: bool = True
     quality: float | None = None
     flagged: bool = False
     integrity_statistic: float | None = None
@@ -120,12 +124,19 @@ class StepHistory:
     def __init__(self, keep_error_bases: bool = False) -> None:
         self.keep_error_bases = keep_error_bases
         self.steps: list[OdometryStep] = []
+        self._unsettled: OdometryStep | None = None  # the last step added, while the next frame may revise it
 
     def add(self, step: OdometryStep) -> OdometryStep:
-        """Record ``step`` (a slim copy); returns ``step`` itself."""
-        self.steps.append(dataclasses.replace(step, result=None,
-                                              error_bases=step.error_bases if self.keep_error_bases else None))
+        """Record ``step`` (a slim copy; the step before it copied again, as the next frame settled
+        it: :attr:`OdometryStep.settled`); returns ``step`` itself."""
+        if self._unsettled is not None and self.steps:
+            self.steps[-1] = self._slim(self._unsettled)
+        self.steps.append(self._slim(step))
+        self._unsettled = None if step.settled else step
         return step
+
+    def _slim(self, step: OdometryStep) -> OdometryStep:
+        return dataclasses.replace(step, result=None, error_bases=step.error_bases if self.keep_error_bases else None)
 
     def __len__(self) -> int:
         return len(self.steps)

@@ -1038,30 +1038,38 @@ def own_change_basis(p: dict, T_key: str = "T_est", noise: float = 1.0) -> np.nd
 
 
 def own_change_table(data: Path) -> list[str]:
-    """The latency term's basis from the pair's own change of the angular velocity instead of the
-    recent pairs' changes: refitted on one half of fr1_rpy, checked on the other (both ways), with
-    the held-out pairs' rotation ANEES by the true angular acceleration; and from the true change
-    (the reference's, not known to a run), what a run that knew the change could reach."""
+    """The latency term's basis from the change across the pair, known one frame later (the
+    default), from the recent pairs' changes (``latency_look_ahead`` off), and from the pair's own
+    change of the angular velocity: refitted on one half of fr1_rpy, checked on the other (both
+    ways), with the held-out pairs' rotation ANEES by the true angular acceleration; and from the
+    true change (the reference's, not known to a run), what a run that knew the change could reach."""
     from covo_gtsam.calibration import log_likelihood
 
     rpy = per_point_pairs(data, RPY)
     rpy["accel"] = true_motion(rpy["T_true"], rpy["t_ref"], rpy["t_cur"])[1]
-    variants = {"the recent pairs' changes (default)": rpy["bases"]["latency"],
+    recent = per_point_pairs(data, RPY, latency_look_ahead=False)
+    assert np.array_equal(recent["end"], rpy["end"])  # the look-ahead moves no pose: the same pairs
+    recent = recent["bases"]["latency"]
+    variants = {"the change across the pair, (w_k+1 - w_k-1) / 2, one frame later (default)": rpy["bases"]["latency"],
+                "the recent pairs' changes (latency_look_ahead false)": recent,
                 "the pair's own change, w_k - w_k-1 (estimated)": own_change_basis(rpy),
                 "the pair's own change, three times its per-point noise taken off": own_change_basis(rpy, noise=3.0),
-                "half the recent changes' and half the own change's": 0.5 * (rpy["bases"]["latency"]
-                                                                            + own_change_basis(rpy)),
+                "half the recent changes' and half the own change's": 0.5 * (recent + own_change_basis(rpy)),
                 "the true change from the pair before (not known to a run)": own_change_basis(rpy, "T_true", 0.0)}
     halves = {"A": rpy["end"] <= 119, "B": rpy["end"] >= 120}
     edges = ACCELERATION_EDGES
     bins = [f"{lo:g}-{hi:g}" if np.isfinite(hi) else f"above {lo:g}" for lo, hi in zip(edges[:-1], edges[1:])]
-    lines = ["## The latency term from the pair's own change", "",
-             "The latency term's basis is the mean of the recent pairs' changes of the angular velocity: a burst "
-             "of acceleration is not announced by the pairs before it. Here it is taken from each pair's own "
-             "change instead (its twist's and the pair before's, the per-point noise of both taken off), the "
-             "default terms refitted on one half of fr1_rpy's consecutive pairs and checked on the other, both "
-             "ways: held-out log-likelihood per pair, ANEES t / r, share of rotation NEES above 9.35, and the "
-             "held-out rotation ANEES by the true angular acceleration (rad/s^2; both halves' held-out pairs). "
+    lines = ["## The latency term's basis: the change across the pair, the recent changes, the pair's own", "",
+             "A burst of acceleration is not announced by the pairs before it. The latency term's basis is taken "
+             "from the change of the angular velocity across the pair, the next pair's twist minus the one "
+             "before's over two (known when the next frame is registered; all six axes, the per-point noise of "
+             "both twists taken off; the default), from the mean of the recent pairs' changes (rotation block; "
+             "`sensor.latency_look_ahead` false, and every pair without a trusted pair before and after it), or "
+             "from each pair's own change (its twist's and the pair before's, the per-point noise of both taken "
+             "off), the default terms refitted on one half of fr1_rpy's consecutive pairs and checked on the "
+             "other, both ways: held-out log-likelihood per pair, ANEES t / r, share of rotation NEES above "
+             "9.35, and the held-out rotation ANEES by the true angular acceleration (rad/s^2; both halves' "
+             "held-out pairs). "
              "The last row takes the change from the reference: it shares the reference's jitter with the "
              "errors, so it bounds what a perfectly known change could give rather than measuring it.", "",
              "| latency basis | latency fitted A / B (ms) | held out: B / A log-likelihood | ANEES t / r B; A | "

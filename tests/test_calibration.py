@@ -267,6 +267,44 @@ def test_twist_changes_subtract_the_estimation_noise_and_use_only_past_pairs():
     assert not np.allclose(tc.basis(), first)
 
 
+def test_central_change_basis_matches_monte_carlo_of_a_common_stamp_delay():
+    """The latency basis a pair gets one frame later (:func:`central_change_basis`) from the mean
+    twists of the pair before and the pair after it (each ``Log(T) / dt`` over its own interval,
+    never the pair's own): on a trajectory whose twist changes, a delay ``L ~ N(0, s^2)`` shared by
+    the pair's two frames moves the pair with a covariance (Monte Carlo) that ``s^2`` times the
+    basis matches. Half the change from the pair before to the pair after is the change across the
+    pair; the whole change (no quarter), or the pair's own twist in place of the one after, fails.
+    The twists' noise is taken off as for one measured change (:func:`known_change_basis`, tested
+    below with the same subtraction)."""
+    import gtsam
+
+    from covo_gtsam.calibration import central_change_basis
+
+    xi0 = np.array([0.3, -1.2, 0.5, 0.05, 0.2, -0.1])  # rad/s, m/s
+    acc = np.array([-20.0, 35.0, 10.0, 1.5, -2.0, 0.5])  # rad/s^2, m/s^2: a hand-held camera's bursts
+
+    def pose(t: float) -> gtsam.Pose3:
+        return gtsam.Pose3.Expmap(t * xi0 + 0.5 * t * t * acc)
+
+    dt, s = 1 / 30, 0.01
+    T = pose(0.0).between(pose(dt))
+    w_before = gtsam.Pose3.Logmap(pose(-dt).between(pose(0.0))) / dt
+    w_own = gtsam.Pose3.Logmap(T) / dt
+    w_after = gtsam.Pose3.Logmap(pose(dt).between(pose(2 * dt))) / dt
+    zero = np.zeros((6, 6))
+    B = central_change_basis(T.matrix(), w_before, w_after, zero, zero)
+    rng = np.random.default_rng(3)
+    errs = np.array([gtsam.Pose3.Logmap(T.between(pose(L).between(pose(dt + L)))) for L in rng.normal(0, s, 20000)])
+    C = np.cov(errs.T)
+    tol = 0.05 * np.abs(C).max()
+    np.testing.assert_allclose(s**2 * B, C, atol=tol)
+    assert not np.allclose(4 * s**2 * B, C, atol=tol)
+    assert not np.allclose(s**2 * central_change_basis(T.matrix(), w_before, w_own, zero, zero), C, atol=tol)
+    # the twists' noise is taken off: a noise-free change given noise loses some of its size
+    N = np.eye(6) * 1e-3
+    assert np.trace(central_change_basis(T.matrix(), w_before, w_after, N, N)) < np.trace(B) - 1e-4
+
+
 def test_known_change_basis_gives_back_a_measured_change_without_its_noise():
     """One measured change of the twist from a keyframe to a later frame (the later frame turned
     1.2 rad against it), both twists drawn around the truth with anisotropic noise: averaged over

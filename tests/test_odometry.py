@@ -196,7 +196,8 @@ def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
     over k = 2 frame intervals) although those pairs' twists differ; until a change has been seen
     (the first two pairs) the basis is the prior, ``sensor.angular_acceleration_prior`` over one
     frame interval in any direction, whatever the twist; a pair over two intervals adds no change, a
-    one-interval pair after a one-interval pair does."""
+    one-interval pair after a one-interval pair does. (The basis as the pair is returned: the
+    look-ahead, tested below, replaces it when the next frame comes.)"""
     from covo_gtsam.datasets.images import load_depth
     from covo_gtsam.datasets.tum import TumSequence
 
@@ -204,7 +205,7 @@ def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
     frames = [(cv2.imread(seq.rgb_paths[i]), load_depth(seq.depth_paths[i]), seq.timestamps[i]) for i in range(9)]
 
     def run(indices):
-        vo = VisualOdometry(seq.camera)
+        vo = VisualOdometry(seq.camera, OdometryConfig().replace(sensor={"latency_look_ahead": False}))
         return [vo.register_frame(*frames[i]) for i in indices]
 
     a, b = run([0, 1, 2, 3, 4, 5, 6, 7]), run([0, 1, 2, 3, 4, 5, 7, 8])  # b skips frame 6
@@ -238,10 +239,65 @@ def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
     # per interval: the same run told its frames come every other interval (pairs of one interval)
     # gives its pairs the same bases (a change over two intervals counts a quarter, a two-interval
     # pair four times the basis)
-    vo = VisualOdometry(seq.camera, OdometryConfig().replace(sensor={"frame_interval_s": 2 / 30}))
+    vo = VisualOdometry(seq.camera, OdometryConfig().replace(sensor={"frame_interval_s": 2 / 30,
+                                                                     "latency_look_ahead": False}))
     d = [vo.register_frame(*frames[i]) for i in (0, 2, 4, 6, 8)]
     for s, t in zip(c[3:], d[3:]):
         np.testing.assert_allclose(s.error_bases["latency"], t.error_bases["latency"], rtol=1e-9, atol=1e-15)
+
+
+def test_the_next_frame_settles_a_pairs_latency_term_from_the_change_across_it(sample_dir):
+    """With ``sensor.latency_look_ahead`` a pair is returned with the latency basis of the recent
+    changes (as without it) and ``settled`` False; registering the next frame replaces that basis by
+    the change across the pair (the next pair's twist minus the one before:
+    :func:`~covo_gtsam.calibration.central_change_basis`) and revises its covariance by exactly the
+    latency term's difference, and its pose covariance with it, before the next pose is composed
+    onto it. The poses do not change; the run's pose covariances are the chain of the revised pair
+    covariances; a history keeps the revised steps; only the last pair stays unsettled."""
+    from covo_gtsam.covariance import compose_covariance
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.steps import StepHistory
+
+    seq = TumSequence(sample_dir)
+    frames = [(*seq.load(i), seq.timestamps[i], seq.depth_timestamps[i]) for i in range(14)]
+    runs, returned = {}, []
+    history = StepHistory()
+    for on in (False, True):
+        vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(sensor={"latency_look_ahead": on}))
+        steps = []
+        for c, d, t, dt in frames:
+            step = vo.register_frame(c, d, t, depth_timestamp=dt)
+            if on:
+                returned.append((step.settled, step.covariance.copy() if step.covariance is not None else None,
+                                 None if step.error_bases is None else step.error_bases["latency"].copy()))
+                history.add(step)
+            steps.append(step)
+        runs[on] = steps
+    off, on = runs[False], runs[True]
+    sigma = OdometryConfig().sensor.latency_sigma_s
+    revised = 0
+    for k, (a, b) in enumerate(zip(on, off)):
+        assert a.status == b.status
+        if not a.has_relative_pose:
+            continue
+        np.testing.assert_array_equal(a.pose.matrix(), b.pose.matrix())
+        settled, cov_then, lat_then = returned[k]
+        np.testing.assert_array_equal(cov_then, b.covariance)  # as returned: the recent changes' basis
+        np.testing.assert_array_equal(lat_then, b.error_bases["latency"])
+        # a pair waits for the next frame when the pair before it has a twist (not the run's first pair)
+        assert settled == (k == 1 or a.flagged or on[k - 1].flagged)
+        D = a.covariance - b.covariance
+        np.testing.assert_allclose(D, sigma**2 * (a.error_bases["latency"] - b.error_bases["latency"]),
+                                   atol=1e-12 * np.abs(b.covariance).max())
+        revised += not np.allclose(a.error_bases["latency"], b.error_bases["latency"])
+        assert a.settled == (k < len(on) - 1)
+        ref = next(s for s in on if s.timestamp == a.ref_timestamp)
+        np.testing.assert_allclose(a.pose_covariance, compose_covariance(ref.pose, ref.pose_covariance, a.relative,
+                                                                         a.covariance), rtol=1e-9, atol=1e-15)
+        kept = history.steps[k]
+        np.testing.assert_array_equal(kept.covariance, a.covariance)
+        np.testing.assert_array_equal(kept.pose_covariance, a.pose_covariance)
+    assert revised >= 8
 
 
 @pytest.mark.parametrize("frame_clock", [False, True])

@@ -254,7 +254,7 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
 @pytest.mark.slow
 def test_calibration_with_the_references_jitter_in_the_terms_takes_it_into_the_frame_term(fr1_rpy_dir, tmp_path):
     """Frames 0-119 of fr1_rpy without the ground truth's own rotation jitter as a known term (covo
-    calibrate --jitter-in-terms): the frame term takes it in, 0.096 deg against the camera's 0.061
+    calibrate --jitter-in-terms): the frame term takes it in, 0.095 deg against the camera's 0.057
     (docs/derivation.md, "The reference's own noise")."""
     pytest.importorskip("scipy")
     from covo_gtsam.odometry import OdometryConfig
@@ -263,7 +263,7 @@ def test_calibration_with_the_references_jitter_in_the_terms_takes_it_into_the_f
     seq = TumSequence(fr1_rpy_dir)
     fit, _ = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False, fit_span=False)
     assert fit.frame_sigma_rot_deg == pytest.approx(0.096, rel=0.05)
-    assert OdometryConfig().sensor.frame_sigma_rot_deg == pytest.approx(0.061, rel=0.01)
+    assert OdometryConfig().sensor.frame_sigma_rot_deg == pytest.approx(0.0574, rel=0.01)
 
 
 @pytest.mark.slow

@@ -154,7 +154,28 @@ def test_latency_basis_covers_the_delay_when_the_turn_axis_wanders():
     the mean of the recent twist changes is thin across the next change's direction, so the basis
     spreads part of its size over all axes, as much as the run's own twist changes call for. The
     delay's part of the rotation error then has a NEES about 3 under ``L^2 B + C_points`` (6.4,
-    two seeds, when the basis kept the recent direction alone)."""
+    two seeds, when the basis kept the recent direction alone). The basis as a pair is returned,
+    before the next frame settles it (``latency_look_ahead`` off; the look-ahead is tested below)."""
+    from covo_gtsam.metrics import nees
+
+    for seed in (0, 1):
+        cfg = SequenceSimulationConfig(frames=300, seed=seed, stamp_latency_s=0.01, period_s=1 / 30,
+                                       max_angular_speed=6.0, **CLEAN)
+        r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0, "latency_look_ahead": False}))
+        m = r.consecutive & ~r.flagged
+        m[:TRUTH.sensor.twist_history + 2] = False
+        C = r.covariances[m][:, :3, :3]
+        delay_nees = nees(r.stamp_errors[m, :3], 0.01**2 * r.bases["latency"][m][:, :3, :3] + C).mean()
+        assert 2.0 < delay_nees < 3.8, seed
+
+
+@pytest.mark.slow
+def test_the_change_across_the_pair_gives_the_delays_part_its_size_and_direction():
+    """Stamps 10 ms late, nothing else, turns up to 6 rad/s: the basis the next frame settles (the
+    change of the twist across the pair, ``latency_look_ahead``) has the delay's part's size (mean
+    square over ``L^2 tr B`` about 1) and its direction: that part, one degree of freedom along the
+    change, has a NEES about 1 under ``L^2 B + C_points`` (the recent changes' spread basis: about
+    2.8, the size spread over all axes), and the pairs' whole rotation error about 3."""
     from covo_gtsam.metrics import nees
 
     for seed in (0, 1):
@@ -163,9 +184,10 @@ def test_latency_basis_covers_the_delay_when_the_turn_axis_wanders():
         r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0}))
         m = r.consecutive & ~r.flagged
         m[:TRUTH.sensor.twist_history + 2] = False
-        C = r.covariances[m][:, :3, :3]
-        delay_nees = nees(r.stamp_errors[m, :3], 0.01**2 * r.bases["latency"][m][:, :3, :3] + C).mean()
-        assert 2.0 < delay_nees < 3.8, seed
+        C, B, d = r.covariances[m][:, :3, :3], 0.01**2 * r.bases["latency"][m][:, :3, :3], r.stamp_errors[m, :3]
+        assert 0.85 < np.mean(np.sum(d**2, axis=1)) / np.mean(np.trace(B, axis1=1, axis2=2)) < 1.15, seed
+        assert 0.8 < nees(d, B + C).mean() < 2.0, seed
+        assert 2.5 < nees(r.errors[m, :3], B + C).mean() < 3.8, seed
 
 
 @pytest.mark.slow
