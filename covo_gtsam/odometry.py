@@ -216,8 +216,8 @@ class VisualOdometry(DeprecatedStepAccess):
         ``step.ref_timestamp``), or why it has none. After a lost frame the next is matched to the
         last posed frame; after ``tracking.restart_after`` lost frames in a row an unmatched frame
         starts a new segment. With ``sensor.latency_look_ahead`` (the default) a pair's covariance
-        is final one frame later: registering the next frame may revise the returned step's
-        ``covariance``, ``pose_covariance`` and latency basis in place (``step.settled`` tells;
+        is final one frame later: registering the next frame may replace the returned step's
+        ``covariance``, ``pose_covariance`` and ``error_bases`` by revised ones (``step.settled`` tells;
         :func:`~covo_gtsam.pipeline.run_sequence` writes each step once settled).
 
         ``image``: as in :meth:`prepare`, or its :class:`FrameData` (e.g. made on another thread;
@@ -461,7 +461,9 @@ class VisualOdometry(DeprecatedStepAccess):
                              ) -> RelativePoseResult:
         """``res`` with its translation moved by the depth's drift (:mod:`covo_gtsam.depth_drift`)
         and ``step``'s covariance grown by that estimate's own: a kept pair's depth-free estimates
-        (``check``) join the drift's window first, a flagged pair's do not. Off in keyframe mode."""
+        (``check``) join the drift's window first, a flagged pair's do not, each weighted by the
+        pair's covariance as it then stands (with the latency term the next frame may still settle).
+        Off in keyframe mode."""
         if not (self._drift.enabled and dt > 0):  # a pair without an interval gets none of the drift
             return res
         k = self.config.sensor.frame_intervals(dt)

@@ -93,9 +93,9 @@ def delay_parts(seed: int, frames: int, speed: float) -> dict:
     return out
 
 
-#: one error source at a time (the 25 ms readout, which the odometry compensates, always on)
 #: the colour-depth offsets of the error-source and offset sections (s, uniform)
 OFFSETS = (0.0, 0.015)
+#: one error source at a time (the 25 ms readout, which the odometry compensates, always on)
 SOURCES = {"readout alone": {}, "+ stamp jitter": {"stamp_jitter_s": 0.002}, "+ stamp delay": {"stamp_latency_s": 0.01},
            "+ colour-depth offsets": {"depth_offset_s": OFFSETS}, "+ depth scale": {"depth_scale_sigma": 0.0005}}
 

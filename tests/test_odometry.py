@@ -246,27 +246,48 @@ def test_latency_basis_of_a_pair_comes_from_the_pairs_before_it(sample_dir):
         np.testing.assert_allclose(s.error_bases["latency"], t.error_bases["latency"], rtol=1e-9, atol=1e-15)
 
 
-def test_the_next_frame_settles_a_pairs_latency_term_from_the_change_across_it(sample_dir):
+def test_the_next_frame_settles_a_pairs_latency_term_from_the_change_across_it(sample_dir, monkeypatch):
     """With ``sensor.latency_look_ahead`` a pair is returned with the latency basis of the recent
     changes (as without it) and ``settled`` False; registering the next frame replaces that basis by
-    the change across the pair (the next pair's twist minus the one before:
-    :func:`~covo_gtsam.calibration.central_change_basis`) and revises its covariance by exactly the
-    latency term's difference, and its pose covariance with it, before the next pose is composed
-    onto it. The poses do not change; the run's pose covariances are the chain of the revised pair
-    covariances; a history keeps the revised steps; only the last pair stays unsettled."""
+    the change across the pair (:func:`~covo_gtsam.calibration.central_change_basis` of the twists
+    of the pair before and the pair after, never the pair's own), moved to the stamps with the
+    adjoint the pair's covariance was moved with (from frame 19 on the frame clock moves them), and
+    revises its covariance by exactly the latency term's difference, and its pose covariance with
+    it, before the next pose is composed onto it. The poses do not change; the run's pose
+    covariances are the chain of the revised pair covariances; a history keeps the revised steps;
+    only the last pair stays unsettled."""
+    from covo_gtsam import calibration, odometry
     from covo_gtsam.covariance import compose_covariance
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.steps import StepHistory
 
+    calls, restamps = [], []
+    original_restamp = odometry.restamp
+
+    def central(T, before, after, noise_before, noise_after):
+        out = calibration.central_change_basis(T, before, after, noise_before, noise_after)
+        calls.append((np.array(before), np.array(after), out))
+        return out
+
+    def restamp(T, shift_ref, shift_cur):
+        out = original_restamp(T, shift_ref, shift_cur)
+        restamps.append(out[1])
+        return out
+
     seq = TumSequence(sample_dir)
-    frames = [(*seq.load(i), seq.timestamps[i], seq.depth_timestamps[i]) for i in range(14)]
+    frames = [(*seq.load(i), seq.timestamps[i], seq.depth_timestamps[i]) for i in range(30)]
     runs, returned = {}, []
     history = StepHistory()
     for on in (False, True):
         vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(sensor={"latency_look_ahead": on}))
-        steps = []
+        if on:
+            monkeypatch.setattr(odometry, "central_change_basis", central)
+            monkeypatch.setattr(odometry, "restamp", restamp)
+        steps, moved = [], []
         for c, d, t, dt in frames:
+            n = len(restamps)
             step = vo.register_frame(c, d, t, depth_timestamp=dt)
+            moved.append(restamps[n] if len(restamps) > n else np.eye(6))
             if on:
                 returned.append((step.settled, step.covariance.copy() if step.covariance is not None else None,
                                  None if step.error_bases is None else step.error_bases["latency"].copy()))
@@ -275,7 +296,8 @@ def test_the_next_frame_settles_a_pairs_latency_term_from_the_change_across_it(s
         runs[on] = steps
     off, on = runs[False], runs[True]
     sigma = OdometryConfig().sensor.latency_sigma_s
-    revised = 0
+    revised = iter(calls)
+    n_revised = n_moved = 0
     for k, (a, b) in enumerate(zip(on, off)):
         assert a.status == b.status
         if not a.has_relative_pose:
@@ -289,7 +311,15 @@ def test_the_next_frame_settles_a_pairs_latency_term_from_the_change_across_it(s
         D = a.covariance - b.covariance
         np.testing.assert_allclose(D, sigma**2 * (a.error_bases["latency"] - b.error_bases["latency"]),
                                    atol=1e-12 * np.abs(b.covariance).max())
-        revised += not np.allclose(a.error_bases["latency"], b.error_bases["latency"])
+        if not settled and k < len(on) - 1:  # settled by the next frame: the pairs around it, moved as the pair
+            before, after, B = next(revised)
+            np.testing.assert_array_equal(before, on[k - 1].velocity)
+            np.testing.assert_array_equal(after, on[k + 1].velocity)
+            assert not np.allclose(after, a.velocity)
+            Ad = moved[k]
+            np.testing.assert_allclose(a.error_bases["latency"], Ad @ B @ Ad.T, rtol=1e-12, atol=1e-18)
+            n_moved += not np.allclose(Ad, np.eye(6), atol=1e-4)
+            n_revised += 1
         assert a.settled == (k < len(on) - 1)
         ref = next(s for s in on if s.timestamp == a.ref_timestamp)
         np.testing.assert_allclose(a.pose_covariance, compose_covariance(ref.pose, ref.pose_covariance, a.relative,
@@ -297,7 +327,7 @@ def test_the_next_frame_settles_a_pairs_latency_term_from_the_change_across_it(s
         kept = history.steps[k]
         np.testing.assert_array_equal(kept.covariance, a.covariance)
         np.testing.assert_array_equal(kept.pose_covariance, a.pose_covariance)
-    assert revised >= 8
+    assert n_revised >= 20 and n_moved >= 5
 
 
 @pytest.mark.parametrize("frame_clock", [False, True])
