@@ -47,6 +47,11 @@ from .validation import (MAX_DEPTH_SCALE, MAX_PIXEL_SIGMA, MAX_SCALE, MIN_DEPTH_
 MAX_GAP_S = 3600.0
 
 
+#: The colour readout time (s) of the Kinect v1 of the TUM freiburg1 sequences, top row to bottom
+#: row: the most accurate frame-to-frame poses on frames 0-119 of fr1_rpy (docs/derivation.md,
+#: "The readout time").
+KINECT_V1_READOUT_S = 0.035
+
 @dataclass(frozen=True)
 class NoiseConfig:
     """Per-point noise model: pixel noise of the keypoints and the Kinect depth model
@@ -120,7 +125,8 @@ class SensorConfig:
                                 minimum=MIN_DEPTH_SCALE, maximum=MAX_DEPTH_SCALE)
     frame_interval_s: float = number(1.0 / 30.0, "the camera's nominal frame period", "s", minimum=1e-4,
                                      maximum=1e3)
-    rolling_shutter_s: float = number(0.025, "colour readout time from the top row to the bottom row; 0 turns "
+    rolling_shutter_s: float = number(KINECT_V1_READOUT_S, "colour readout time from the top row to the bottom "
+                                      "row; 0 turns "
                                       "the compensation off", "s", "non-negative", maximum=1.0)
     frame_clock: bool = flag(True, "learn the frame clock from the stamps and report poses between the stamps")
     clock_window: int = integer(60, "stamps the frame clock is fitted to", 20, unit="frames")
@@ -128,28 +134,28 @@ class SensorConfig:
                                          "(depth images stamped apart from the colour images)")
     correlation_factor: float = number(1.0, "kappa: multiplies the per-point covariance, for errors shared by the "
                                        "points", "factor", minimum=MIN_SCALE, maximum=MAX_SCALE)
-    frame_sigma_rot_deg: float = number(0.0574, "per-axis rotation error common to a pair, per frame interval "
+    frame_sigma_rot_deg: float = number(0.0572, "per-axis rotation error common to a pair, per frame interval "
                                         "(variance grows k times over k intervals)", "deg", "non-negative",
                                         maximum=180.0)
     frame_sigma_trans_m: float = number(0.0, "per-axis translation error common to a pair, per frame interval "
                                         "(variance grows k^2 times)", "m", "non-negative", maximum=1e3)
     timing_sigma_s: float = number(0.0, "a frame's capture-time error (frame-level term)", "s", "non-negative",
                                    maximum=1.0)
-    rolling_shutter_factor: float = number(1.99, "error of the rolling-shutter compensation's twist, times its "
+    rolling_shutter_factor: float = number(1.28, "error of the rolling-shutter compensation's twist, times its "
                                            "model (frame-level term)", "factor", "non-negative", maximum=100.0)
     stamp_jitter_s: float = number(0.002, "the stamps' jitter before the frame clock places them (frame-level "
                                    "term, a prior)", "s", "non-negative", maximum=1.0)
-    latency_sigma_s: float = number(0.00700, "the stamps' unknown common delay against the clock the poses are used "
+    latency_sigma_s: float = number(0.00723, "the stamps' unknown common delay against the clock the poses are used "
                                     "on (frame-level term)", "s", "non-negative", maximum=1.0)
-    depth_scale_sigma: float = number(0.000387, "a frame's depths all scaled by 1 + e (frame-level term)",
+    depth_scale_sigma: float = number(0.000375, "a frame's depths all scaled by 1 + e (frame-level term)",
                                       "fraction", "non-negative", maximum=1.0)
-    depth_time_factor: float = number(0.382, "error of the colour-depth time offset, times the stamped offset "
+    depth_time_factor: float = number(0.379, "error of the colour-depth time offset, times the stamped offset "
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
     depth_jump_factor: float = number(1.0, "the depth image read whole depth periods earlier or later than at the "
                                       "pair's other frame (its nearest depth image switched to a neighbour): this "
                                       "times that change (frame-level term, a prior; 1: the whole change)", "factor",
                                       "non-negative", maximum=100.0)
-    span_factor: float = number(0.184, "translation error per frame interval that persists over a pair's intervals "
+    span_factor: float = number(0.205, "translation error per frame interval that persists over a pair's intervals "
                                 "beyond the first, times the camera's recent translation per interval (frame-level "
                                 "term; 0 for consecutive pairs)", "factor", "non-negative", maximum=100.0)
     depth_drift_pairs: int = integer(10, "recent pairs whose depth-free estimates' disagreement along the depth-scale "

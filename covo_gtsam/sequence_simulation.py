@@ -55,7 +55,7 @@ class SequenceSimulationConfig:
     period_s: float = 1.0 / 30.0
     stamp_jitter_s: float = 0.002
     stamp_latency_s: float = 0.0
-    readout_s: float = 0.025
+    readout_s: float = 0.025  # the simulated sensor's, not the odometry's default: tell it (sensor.rolling_shutter_s)
     depth_offset_s: tuple[float, float] = (0.0, 0.015)
     depth_period_s: float | None = None
     pixel_sigma: float = 1.0

@@ -13,7 +13,9 @@ from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_se
 
 #: the odometry told the simulated sensor's true noise, with no sensor-level terms and no depth-drift
 #: correction (the simulated depths do not drift unless a test injects a drift)
-TRUTH = OdometryConfig().replace(noise={"pixel_sigma": 1.0, "depth_sigma_scale": 1.0}, sensor={
+#: the odometry's defaults told the simulated sensor's readout (a property of the sensor, as its intrinsics)
+DEFAULTS = OdometryConfig().replace(sensor={"rolling_shutter_s": SequenceSimulationConfig().readout_s})
+TRUTH = DEFAULTS.replace(noise={"pixel_sigma": 1.0, "depth_sigma_scale": 1.0}, sensor={
     "correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0, "depth_drift_pairs": 0,
     **{name: 0.0 for name in ERROR_TERMS.values()}})
 #: no error source but pixel and depth noise
@@ -44,7 +46,7 @@ def test_injected_sources_make_the_per_point_model_overconfident():
 @pytest.mark.slow
 def test_frame_clock_recovers_the_injected_period_and_stamp_offsets():
     cfg = SequenceSimulationConfig(frames=150, period_s=1 / 29.5, stamp_jitter_s=0.003, bad_frame_rate=0.0)
-    r = simulate_sequence(cfg, OdometryConfig())
+    r = simulate_sequence(cfg, DEFAULTS)
     assert r.clock_period_s == pytest.approx(1 / 29.5, abs=1e-4)  # the nominal is 1/30
     late = slice(60, None)
     truth = r.true_stamp_offsets[late] - r.true_stamp_offsets[late].mean()
@@ -60,7 +62,7 @@ def test_integrity_check_catches_bad_frames_at_few_false_alarms():
     flagged_bad, flagged_good, caught = [], [], []
     for seed in (0, 1):
         r = simulate_sequence(SequenceSimulationConfig(frames=200, seed=seed, depth_scale_sigma=0.0005,
-                                                       bad_frame_rate=0.05), OdometryConfig())
+                                                       bad_frame_rate=0.05), DEFAULTS)
         flagged_bad += list(r.flagged[r.bad])
         flagged_good += list(r.flagged[~r.bad])
         caught += [r.detection_rate] * int(r.bad_frames.sum())
@@ -200,7 +202,7 @@ def test_a_flagged_pair_does_not_spoil_the_next_pair():
 
     for seed in range(2):
         r = simulate_sequence(SequenceSimulationConfig(frames=300, seed=seed, depth_scale_sigma=0.0005,
-                                                       bad_frame_rate=0.05), OdometryConfig())
+                                                       bad_frame_rate=0.05), DEFAULTS)
         bad = np.flatnonzero(r.bad_frames)
         after = np.array([min((j - b for b in bad if j >= b), default=len(r.bad_frames)) for j in r.frames[:, 1]])
         nt = nees(r.errors[:, 3:], r.covariances[:, 3:, 3:])
