@@ -69,8 +69,8 @@ import numpy as np
 from .errors import InputError
 
 __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance",
-           "stamp_error_basis",
-           "twist_change", "known_change_basis", "central_change_basis", "latency_basis", "TwistChanges", "span_basis", "sensor_covariance",
+           "stamp_error_basis", "twist_change", "known_change_basis", "central_change_basis", "latency_basis",
+           "TwistChanges", "span_basis", "sensor_covariance",
            "log_likelihood", "fit_sensor_terms", "MIN_SPAN_PAIRS", "span_fit_pairs", "fit_span_factor"]
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.

@@ -126,8 +126,7 @@ class SensorConfig:
     frame_interval_s: float = number(1.0 / 30.0, "the camera's nominal frame period", "s", minimum=1e-4,
                                      maximum=1e3)
     rolling_shutter_s: float = number(KINECT_V1_READOUT_S, "colour readout time from the top row to the bottom "
-                                      "row; 0 turns "
-                                      "the compensation off", "s", "non-negative", maximum=1.0)
+                                      "row; 0 turns the compensation off", "s", "non-negative", maximum=1.0)
     frame_clock: bool = flag(True, "learn the frame clock from the stamps and report poses between the stamps")
     clock_window: int = integer(60, "stamps the frame clock is fitted to", 20, unit="frames")
     depth_time_compensation: bool = flag(False, "move each point along its ray to its colour image's time "

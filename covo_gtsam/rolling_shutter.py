@@ -12,7 +12,8 @@ frame at ``t + δ(v)``; in the frame at ``t`` it is
 
 The Kinect v1 of the TUM freiburg1 sequences reads its colour rows out over about 35 ms (most of
 a frame period; the most accurate poses on fr1_rpy, ``sensor.rolling_shutter_s``), so a camera
-turning at 1 rad/s moves rows at the top and bottom of the image about 2 deg apart. The registered depth image is treated as captured with the same row timing.
+turning at 1 rad/s moves rows at the top and bottom of the image about 2 deg apart. The registered
+depth image is treated as captured with the same row timing.
 """
 
 from __future__ import annotations

@@ -55,7 +55,7 @@ class SequenceSimulationConfig:
     period_s: float = 1.0 / 30.0
     stamp_jitter_s: float = 0.002
     stamp_latency_s: float = 0.0
-    readout_s: float = 0.025  # the simulated sensor's, not the odometry's default: tell it (sensor.rolling_shutter_s)
+    readout_s: float = 0.025  # the simulated sensor's, not the odometry's default (odometry_defaults)
     depth_offset_s: tuple[float, float] = (0.0, 0.015)
     depth_period_s: float | None = None
     pixel_sigma: float = 1.0
@@ -67,6 +67,11 @@ class SequenceSimulationConfig:
     bad_frame_offset_s: float = 0.1
     max_angular_speed: float = 2.0
     max_speed: float = 0.3
+
+    def odometry_defaults(self) -> OdometryConfig:
+        """The package's default settings told this sensor's readout (``sensor.rolling_shutter_s``, a
+        property of the camera as its intrinsics are; the default is the fr1 Kinect's)."""
+        return OdometryConfig().replace(sensor={"rolling_shutter_s": self.readout_s})
 
 
 @dataclass
@@ -210,9 +215,10 @@ def _observe(traj: _Trajectory, Pw: np.ndarray, t_capture: float, readout: float
 
 def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
                       odometry: OdometryConfig | None = None) -> SequenceSimulationResult:
-    """Run the odometry (``odometry`` settings, default: the package's) over a simulated sequence."""
+    """Run the odometry (``odometry`` settings, default: the package's told the sensor's readout,
+    :meth:`SequenceSimulationConfig.odometry_defaults`) over a simulated sequence."""
     cfg = cfg or SequenceSimulationConfig()
-    odometry = odometry or OdometryConfig()
+    odometry = odometry or cfg.odometry_defaults()
     rng = np.random.default_rng(cfg.seed)
     camera = Camera.preset(cfg.camera)
     traj = _Trajectory(rng, cfg.max_angular_speed, cfg.max_speed)

@@ -24,14 +24,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from covo_gtsam.calibration import ERROR_TERMS, TwistChanges, fit_sensor_terms, latency_basis  # noqa: E402
-from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.metrics import nees, se3_log  # noqa: E402
 from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_sequence  # noqa: E402
 
+#: the odometry's defaults told the simulated sensor's readout
+DEFAULTS = SequenceSimulationConfig().odometry_defaults()
 #: the odometry told the simulated sensor's true noise, no frame-level term, and (the simulated depths do
 #: not drift, except where a section injects a drift) no depth-drift correction
-#: the odometry's defaults told the simulated sensor's readout (a property of the sensor, as its intrinsics)
-DEFAULTS = OdometryConfig().replace(sensor={"rolling_shutter_s": SequenceSimulationConfig().readout_s})
 TRUTH = DEFAULTS.replace(noise={"pixel_sigma": 1.0, "depth_sigma_scale": 1.0}, sensor={
     "correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0, "depth_drift_pairs": 0,
     **{name: 0.0 for name in ERROR_TERMS.values()}})

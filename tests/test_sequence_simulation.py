@@ -8,13 +8,12 @@ import pytest
 
 from covo_gtsam.calibration import ERROR_TERMS, fit_sensor_terms
 from covo_gtsam.metrics import chi2_quantile, relative_pose_tangent_errors
-from covo_gtsam.odometry import OdometryConfig
 from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_sequence
 
+#: the odometry's defaults told the simulated sensor's readout
+DEFAULTS = SequenceSimulationConfig().odometry_defaults()
 #: the odometry told the simulated sensor's true noise, with no sensor-level terms and no depth-drift
 #: correction (the simulated depths do not drift unless a test injects a drift)
-#: the odometry's defaults told the simulated sensor's readout (a property of the sensor, as its intrinsics)
-DEFAULTS = OdometryConfig().replace(sensor={"rolling_shutter_s": SequenceSimulationConfig().readout_s})
 TRUTH = DEFAULTS.replace(noise={"pixel_sigma": 1.0, "depth_sigma_scale": 1.0}, sensor={
     "correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0, "depth_drift_pairs": 0,
     **{name: 0.0 for name in ERROR_TERMS.values()}})
