@@ -133,28 +133,28 @@ class SensorConfig:
                                          "(depth images stamped apart from the colour images)")
     correlation_factor: float = number(1.0, "kappa: multiplies the per-point covariance, for errors shared by the "
                                        "points", "factor", minimum=MIN_SCALE, maximum=MAX_SCALE)
-    frame_sigma_rot_deg: float = number(0.0572, "per-axis rotation error common to a pair, per frame interval "
+    frame_sigma_rot_deg: float = number(0.0553, "per-axis rotation error common to a pair, per frame interval "
                                         "(variance grows k times over k intervals)", "deg", "non-negative",
                                         maximum=180.0)
     frame_sigma_trans_m: float = number(0.0, "per-axis translation error common to a pair, per frame interval "
                                         "(variance grows k^2 times)", "m", "non-negative", maximum=1e3)
     timing_sigma_s: float = number(0.0, "a frame's capture-time error (frame-level term)", "s", "non-negative",
                                    maximum=1.0)
-    rolling_shutter_factor: float = number(1.28, "error of the rolling-shutter compensation's twist, times its "
+    rolling_shutter_factor: float = number(0.993, "error of the rolling-shutter compensation's twist, times its "
                                            "model (frame-level term)", "factor", "non-negative", maximum=100.0)
     stamp_jitter_s: float = number(0.002, "the stamps' jitter before the frame clock places them (frame-level "
                                    "term, a prior)", "s", "non-negative", maximum=1.0)
-    latency_sigma_s: float = number(0.00723, "the stamps' unknown common delay against the clock the poses are used "
+    latency_sigma_s: float = number(0.00708, "the stamps' unknown common delay against the clock the poses are used "
                                     "on (frame-level term)", "s", "non-negative", maximum=1.0)
-    depth_scale_sigma: float = number(0.000375, "a frame's depths all scaled by 1 + e (frame-level term)",
+    depth_scale_sigma: float = number(0.00044, "a frame's depths all scaled by 1 + e (frame-level term)",
                                       "fraction", "non-negative", maximum=1.0)
-    depth_time_factor: float = number(0.379, "error of the colour-depth time offset, times the stamped offset "
+    depth_time_factor: float = number(0.300, "error of the colour-depth time offset, times the stamped offset "
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
     depth_jump_factor: float = number(1.0, "the depth image read whole depth periods earlier or later than at the "
                                       "pair's other frame (its nearest depth image switched to a neighbour): this "
                                       "times that change (frame-level term, a prior; 1: the whole change)", "factor",
                                       "non-negative", maximum=100.0)
-    span_factor: float = number(0.205, "translation error per frame interval that persists over a pair's intervals "
+    span_factor: float = number(0.209, "translation error per frame interval that persists over a pair's intervals "
                                 "beyond the first, times the camera's recent translation per interval (frame-level "
                                 "term; 0 for consecutive pairs)", "factor", "non-negative", maximum=100.0)
     depth_drift_pairs: int = integer(10, "recent pairs whose depth-free estimates' disagreement along the depth-scale "
@@ -165,6 +165,10 @@ class SensorConfig:
     latency_look_ahead: bool = flag(True, "settle a consecutive pair's latency term one frame late, from the change "
                                     "of the twist across it (the next pair's twist minus the one before); false: "
                                     "from the recent changes' mean, final when the pair is returned")
+    rolling_shutter_look_ahead: bool = flag(True, "move a consecutive pair's pose one frame late by its current "
+                                            "frame's rolling-shutter compensation with the twist at the frame's "
+                                            "stamp (the mean of the pair's and the next pair's twists) in place "
+                                            "of the pair's own")
     angular_acceleration_prior: float = number(
         10.0, "the camera's angular acceleration, RMS over its axes, that the latency and rolling-shutter terms "
         "take until the run has measured a change of its twist (a prior: a hand-held camera)", "rad/s^2",

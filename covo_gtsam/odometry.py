@@ -76,18 +76,21 @@ class _TwistSpan(NamedTuple):
 
 
 class _Provisional(NamedTuple):
-    """A pair whose latency term the next pair settles (``sensor.latency_look_ahead``): its step, its
-    reference frame's step (for the pose covariance), its motion between the captures, the twist of
-    the pair before it with that twist's noise, its frame intervals, and the adjoint (6x6) its
-    covariance was moved from the captures to the stamps with."""
+    """A pair the next pair settles: its step, its reference frame's step (for the pose covariance),
+    its motion between the captures, its frame intervals, the adjoint (6x6) its covariance was moved
+    from the captures to the stamps with; for its latency term (``sensor.latency_look_ahead``) the
+    twist of the pair before it with that twist's noise, and for its current frame's rolling-shutter
+    compensation (``sensor.rolling_shutter_look_ahead``) the estimate's response (6x6) to an error
+    of that compensation's twist (None where not settled)."""
 
     step: OdometryStep
     ref_step: OdometryStep
     motion: gtsam.Pose3
-    twist_before: np.ndarray
-    noise_before: np.ndarray
     intervals: int
     restamp: np.ndarray
+    twist_before: np.ndarray | None
+    noise_before: np.ndarray | None
+    shutter: np.ndarray | None
 
 
 def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
@@ -423,8 +426,8 @@ class VisualOdometry(DeprecatedStepAccess):
         gains = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp, ref, pairs, gains)
-        step.error_bases, b = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt,
-                                                timestamp, r_cur, gains)
+        step.error_bases, b, shutter = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists,
+                                                         dt, timestamp, r_cur, gains)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -442,7 +445,7 @@ class VisualOdometry(DeprecatedStepAccess):
         res = self._corrected_for_drift(step, res, check, b, dt)
         self._settle(ref_step, step)
         Ad = self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
-        self._candidate = self._provisional_pair(step, ref_step, Ad)
+        self._candidate = self._provisional_pair(step, ref_step, Ad, shutter)
         return step
 
     def _bearings_consensus(self, ref: FrameData, frame: FrameData, pairs: PointPairs) -> int:
@@ -645,37 +648,58 @@ class VisualOdometry(DeprecatedStepAccess):
                                                   step.covariance)
         return Ad
 
-    def _provisional_pair(self, step: OdometryStep, ref_step: OdometryStep, Ad: np.ndarray) -> _Provisional | None:
-        """``step`` as a pair whose latency term the next pair may settle (:meth:`_settle`): frame to
-        frame, with ``sensor.latency_look_ahead``, not flagged, with its own twist and the pair
-        before's (trusted, with its noise) over as many frame intervals; else None."""
-        if not self.config.sensor.latency_look_ahead or self.config.tracking.keyframes or step.flagged:
+    def _provisional_pair(self, step: OdometryStep, ref_step: OdometryStep, Ad: np.ndarray,
+                          shutter: np.ndarray | None) -> _Provisional | None:
+        """``step`` as a pair the next pair may settle (:meth:`_settle`): frame to frame, not flagged,
+        with its own twist; its latency term with ``sensor.latency_look_ahead`` where the pair before
+        has a trusted twist over as many intervals, and its current frame's rolling-shutter
+        compensation with ``sensor.rolling_shutter_look_ahead`` where ``shutter`` (the response,
+        6x6) is given; None where neither."""
+        sensor = self.config.sensor
+        span = self._twist_noise.get(step.timestamp)
+        if (self.config.tracking.keyframes or step.flagged or ref_step.flagged or span is None
+                or step.velocity is None or span.start != ref_step.timestamp):
             return None
-        span, before = self._twist_noise.get(step.timestamp), self._twist_noise.get(ref_step.timestamp)
-        twist_before = _trusted_velocity(ref_step)
-        if (span is None or before is None or twist_before is None or step.velocity is None or ref_step.flagged
-                or span.start != ref_step.timestamp or before.intervals != span.intervals):
+        twist_before = noise_before = None
+        before = self._twist_noise.get(ref_step.timestamp)
+        if sensor.latency_look_ahead and before is not None and before.intervals == span.intervals:
+            trusted = _trusted_velocity(ref_step)
+            if trusted is not None:
+                twist_before, noise_before = np.asarray(trusted, dtype=float), before.noise
+        shutter = shutter if sensor.rolling_shutter_look_ahead else None
+        if twist_before is None and shutter is None:
             return None
-        return _Provisional(step, ref_step, span.motion, np.asarray(twist_before, dtype=float), before.noise,
-                            span.intervals, Ad)
+        return _Provisional(step, ref_step, span.motion, span.intervals, Ad, twist_before, noise_before, shutter)
 
     def _settle(self, ref_step: OdometryStep, step: OdometryStep) -> None:
-        """The latency term of the pair ending at ``ref_step`` taken from the change of the twist
-        across it (:func:`~covo_gtsam.calibration.central_change_basis`: ``step``'s twist minus the
-        pair before's) in place of the recent changes' mean; its covariance, latency basis and pose
-        covariance revised (it is the last posed frame: nothing was composed onto it yet). Only
-        where ``step`` is a trusted pair over as many intervals, right after it."""
+        """The pair ending at ``ref_step`` settled by ``step``, a trusted pair over as many intervals
+        right after it; its pose covariance recomposed (it is the last posed frame: nothing was
+        composed onto it yet).
+
+        - Its current frame's rows were moved to the stamp with the pair's mean twist, about half an
+          interval early; the twist at the stamp is about the mean of that twist and ``step``'s,
+          so the pose moves by the response to half their difference (docs/derivation.md, "The
+          rolling shutter at the current frame, one frame late").
+        - Its latency term is taken from the change of the twist across it
+          (:func:`~covo_gtsam.calibration.central_change_basis`: ``step``'s twist minus the pair
+          before's) in place of the recent changes' mean.
+        """
         prov = self._provisional
         span = self._twist_noise.get(step.timestamp)
         if (prov is None or prov.step is not ref_step or step.flagged or step.velocity is None or span is None
                 or span.start != ref_step.timestamp or span.intervals != prov.intervals):
             return
-        B = central_change_basis(prov.motion.matrix(), prov.twist_before, step.velocity, prov.noise_before,
-                                 span.noise)
-        B = prov.restamp @ B @ prov.restamp.T
         pair = prov.step
-        pair.covariance = pair.covariance + self.config.sensor.latency_sigma_s**2 * (B - pair.error_bases["latency"])
-        pair.error_bases = {**pair.error_bases, "latency": B}
+        if prov.shutter is not None:
+            move = prov.restamp @ prov.shutter @ (0.5 * (step.velocity - pair.velocity))
+            pair.relative = pair.relative.compose(gtsam.Pose3.Expmap(move))
+            pair.pose = prov.ref_step.pose.compose(pair.relative)
+        if prov.twist_before is not None:
+            B = central_change_basis(prov.motion.matrix(), prov.twist_before, step.velocity, prov.noise_before,
+                                     span.noise)
+            B = prov.restamp @ B @ prov.restamp.T
+            pair.covariance = pair.covariance + self.config.sensor.latency_sigma_s**2 * (B - pair.error_bases["latency"])
+            pair.error_bases = {**pair.error_bases, "latency": B}
         pair.pose_covariance = compose_covariance(prov.ref_step.pose, prov.ref_step.pose_covariance, pair.relative,
                                                   pair.covariance)
 
@@ -722,9 +746,11 @@ class VisualOdometry(DeprecatedStepAccess):
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
                      dt: float, timestamp: float, r_cur: float | None, gains: tuple[np.ndarray, np.ndarray]
-                     ) -> tuple[dict, np.ndarray]:
-        """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`) and its
-        response ``b`` (6,) to the current frame's depths scaled by ``1 + e`` (per unit ``e``);
+                     ) -> tuple[dict, np.ndarray, np.ndarray | None]:
+        """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`), its
+        response ``b`` (6,) to the current frame's depths scaled by ``1 + e`` (per unit ``e``) and
+        its response (6x6) to an error of the current frame's rolling-shutter twist (None without
+        the compensation or without a twist at the reference);
         ``twists`` are the camera's twists at the two frames
         (:func:`~covo_gtsam.rolling_shutter.frame_twists`), None without motion; ``r_cur`` the current
         frame's move to its stamp (:meth:`_capture_interval`); ``gains`` the estimate's response to
@@ -738,7 +764,7 @@ class VisualOdometry(DeprecatedStepAccess):
         step_m = 0.0 if recent is None else float(np.linalg.norm(recent[3:])) * self.config.sensor.frame_interval_s
         bases["span"] = span_basis(step_m, self.config.sensor.frame_intervals(dt))
         if twists is None:
-            return bases, b_cur  # no motion: no timing terms
+            return bases, b_cur, None  # no motion: no timing terms
         twist_ref, velocity = twists
         bases["timing"] = stamp_error_basis(M, twist_ref, velocity)
         # the covariance of the twist's change over the pair, from the pairs before this one (over k
@@ -775,6 +801,7 @@ class VisualOdometry(DeprecatedStepAccess):
                 dz = depth_read_change(fd.depth, uv, X, twist, shift, self.camera.fx, self.camera.fy)
                 j += depth_change_basis(G, X, dz)
         bases["depth_jump"] = np.outer(j, j)
+        shutter = None
         if self.config.sensor.rolling_shutter_s > 0:
             # the twist at the current frame may differ from the pair's mean by half the change of
             # the twist over the pair: its size from the recent pairs (as the latency term's, not
@@ -794,10 +821,11 @@ class VisualOdometry(DeprecatedStepAccess):
                 bases["rolling_shutter"] = 0.25 * D @ change_cov @ D.T
             else:
                 bases["rolling_shutter"] = 0.25 * B @ change_cov @ B.T
+                shutter = B
                 if known is not None:
                     B_ref = response(G_ref, X_ref, pairs.uv_ref)
                     bases["rolling_shutter"] += 0.25 * m_ref**2 * B_ref @ history @ B_ref.T
-        return bases, b_cur
+        return bases, b_cur, shutter
 
     def _twist_change_prior(self) -> np.ndarray:
         """The latency basis (6, 6) until the run has measured a change of its twist: the change over

@@ -330,6 +330,65 @@ def test_the_next_frame_settles_a_pairs_latency_term_from_the_change_across_it(s
     assert n_revised >= 20 and n_moved >= 5
 
 
+def test_the_next_frame_moves_a_pairs_pose_by_its_rolling_shutter_response_to_half_the_twists_change(
+        sample_dir, monkeypatch):
+    """With ``sensor.rolling_shutter_look_ahead`` registering the next frame moves the last pair's
+    relative pose by its current frame's rolling-shutter response (the one its covariance's term
+    was built with) to half the change of the twist to the next pair's, moved to the stamps with
+    the pair's restamp adjoint: ``T <- T Exp(Ad S (w_next - w) / 2)``; its pose is the reference's
+    composed with it, before the next pose is composed onto it, and a history keeps the moved step.
+    Without it the relative pose stays as returned."""
+    from covo_gtsam import odometry
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.steps import StepHistory
+
+    responses, restamps = {}, []
+    original_bases, original_restamp = VisualOdometry._error_bases, odometry.restamp
+
+    def error_bases(self, *args):
+        out = original_bases(self, *args)
+        responses[args[9]] = out[2]  # by the pair's timestamp
+        return out
+
+    def restamp(T, shift_ref, shift_cur):
+        out = original_restamp(T, shift_ref, shift_cur)
+        restamps.append(out[1])
+        return out
+
+    monkeypatch.setattr(VisualOdometry, "_error_bases", error_bases)
+    monkeypatch.setattr(odometry, "restamp", restamp)
+    seq = TumSequence(sample_dir)
+    frames = [(*seq.load(i), seq.timestamps[i], seq.depth_timestamps[i]) for i in range(30)]
+    for on in (False, True):
+        vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(sensor={"rolling_shutter_look_ahead": on}))
+        history = StepHistory()
+        steps, returned, moved = [], [], []
+        for c, d, t, dt in frames:
+            n = len(restamps)
+            step = history.add(vo.register_frame(c, d, t, depth_timestamp=dt))
+            moved.append(restamps[n] if len(restamps) > n else np.eye(6))
+            returned.append(step.relative)
+            steps.append(step)
+        n_moved = n_restamped = 0
+        for k, a in enumerate(steps[:-1]):
+            if not a.has_relative_pose:
+                continue
+            nxt = steps[k + 1]
+            S = responses[a.timestamp]
+            expected = returned[k]
+            if on and S is not None and nxt.has_relative_pose and nxt.ref_timestamp == a.timestamp and not nxt.flagged:
+                move = moved[k] @ S @ (0.5 * (nxt.velocity - a.velocity))
+                expected = returned[k].compose(gtsam.Pose3.Expmap(move))
+                assert np.linalg.norm(move) > 1e-6
+                n_moved += 1
+                n_restamped += not np.allclose(moved[k], np.eye(6), atol=1e-4)
+            np.testing.assert_allclose(a.relative.matrix(), expected.matrix(), atol=1e-12)
+            ref = next(s for s in steps if s.timestamp == a.ref_timestamp)
+            np.testing.assert_allclose(a.pose.matrix(), ref.pose.compose(a.relative).matrix(), atol=1e-12)
+            np.testing.assert_array_equal(history.steps[k].relative.matrix(), a.relative.matrix())
+        assert n_moved >= (20 if on else 0) and n_restamped >= (5 if on else 0)
+
+
 @pytest.mark.parametrize("frame_clock", [False, True])
 def test_keyframe_pairs_take_the_current_twist_from_the_last_posed_frame(sample_dir, frame_clock):
     """Against an older keyframe, a frame's twist (used for its rolling-shutter compensation, its

@@ -320,22 +320,25 @@ def test_a_run_without_usable_ground_truth_says_why(small_sample, tmp_path, caps
     assert f"{want}; accuracy and consistency metrics skipped" in out
 
 
-def test_relative_txt_carries_each_pairs_settled_covariance(small_seq, tmp_path):
-    """A pair's covariance is written once the next frame has settled its latency term
-    (``sensor.latency_look_ahead``): relative.txt holds the covariances the run's steps end with,
-    which differ from those the look-ahead off gives for the pairs it revised, and the last pair is
-    written too."""
+def test_relative_txt_carries_each_pairs_settled_covariance_and_pose(small_seq, tmp_path):
+    """A pair is written once the next frame has settled its latency term
+    (``sensor.latency_look_ahead``) and moved its pose (``sensor.rolling_shutter_look_ahead``):
+    relative.txt holds the covariances and relative poses the run's steps end with, which differ
+    from those the look-ahead off gives for the pairs it revised, and the last pair is written too."""
     from covo_gtsam.config import OdometryConfig
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.pipeline import run_sequence
 
-    covs = {}
+    covs, poses = {}, {}
     for on in (True, False):
-        cfg = OdometryConfig().replace(sensor={"latency_look_ahead": on})
+        cfg = OdometryConfig().replace(sensor={"latency_look_ahead": on, "rolling_shutter_look_ahead": on})
         result = run_sequence(TumSequence(small_seq), tmp_path / str(on), config=cfg, plots=False, progress=False)
         pairs = [s for s in result.steps if s.has_relative_pose]
-        _, _, _, written = load_relative_poses(tmp_path / str(on) / "relative.txt")
+        _, _, T, written = load_relative_poses(tmp_path / str(on) / "relative.txt")
         assert len(written) == len(pairs) == len(result.steps) - 1
         np.testing.assert_allclose(written, [s.covariance for s in pairs], rtol=1e-6, atol=1e-15)
-        covs[on] = written
+        np.testing.assert_allclose(T, [s.relative.matrix() for s in pairs], atol=1e-6)
+        covs[on], poses[on] = written, T
     assert np.sum(np.any(~np.isclose(covs[True], covs[False], rtol=1e-3), axis=(1, 2))) >= len(covs[True]) // 2
+    moved = np.linalg.norm(poses[True][:, :3, 3] - poses[False][:, :3, 3], axis=1)
+    assert np.sum(moved > 1e-5) >= len(moved) // 2

@@ -243,9 +243,9 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
                            for i, p in enumerate(P)]) + J
     without = np.array([default.sensor_covariance(p) for p in P]) + J
     assert log_likelihood(err, with_terms) > log_likelihood(err, P) + 10  # the per-point model as reported
-    # ... even given the reference's jitter (by 4.3 per pair; by more than 5 before the depth-drift correction took
-    # part of the persistent error out of the poses themselves)
-    assert log_likelihood(err, with_terms) > log_likelihood(err, P + J) + 3
+    # ... even given the reference's jitter (by 2.25 per pair; by 4.3 before the rolling-shutter look-ahead and by
+    # more than 5 before the depth-drift correction, each of which took part of the error out of the poses themselves)
+    assert log_likelihood(err, with_terms) > log_likelihood(err, P + J) + 1.5
     assert log_likelihood(err, with_terms) > log_likelihood(err, without)
     assert set(bases) == set(ERROR_TERMS)
 
@@ -254,7 +254,7 @@ def test_default_sensor_terms_are_the_fit_on_the_first_half_of_fr1_rpy(fr1_rpy_d
 @pytest.mark.slow
 def test_calibration_with_the_references_jitter_in_the_terms_takes_it_into_the_frame_term(fr1_rpy_dir, tmp_path):
     """Frames 0-119 of fr1_rpy without the ground truth's own rotation jitter as a known term (covo
-    calibrate --jitter-in-terms): the frame term takes it in, 0.095 deg against the camera's 0.057
+    calibrate --jitter-in-terms): the frame term takes it in, 0.095 deg against the camera's 0.055
     (docs/derivation.md, "The reference's own noise")."""
     pytest.importorskip("scipy")
     from covo_gtsam.odometry import OdometryConfig
@@ -263,7 +263,7 @@ def test_calibration_with_the_references_jitter_in_the_terms_takes_it_into_the_f
     seq = TumSequence(fr1_rpy_dir)
     fit, _ = calibrate_sequence(seq, tmp_path / "fit", max_frames=120, progress=False, fit_span=False)
     assert fit.frame_sigma_rot_deg == pytest.approx(0.096, rel=0.05)
-    assert OdometryConfig().sensor.frame_sigma_rot_deg == pytest.approx(0.0574, rel=0.01)
+    assert OdometryConfig().sensor.frame_sigma_rot_deg == pytest.approx(0.0553, rel=0.01)
 
 
 @pytest.mark.slow
@@ -284,7 +284,7 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     # the per-point model alone is too confident on real data (ANEES well above 3); the fit inflates
     # it, here mostly through the frame term
     assert min(s["per_point_model_anees"]) > 6 and 0.3 < s["correlation_factor"] < 3
-    assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 < s["frame_sigma_trans_m"] < 0.01
+    assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 <= s["frame_sigma_trans_m"] < 0.01
     printed = capsys.readouterr().out.splitlines()
     lines = [ln for ln in printed if ln.split(" = ")[0].isidentifier()]
     # kappa, the two frame sigmas, the default frame-level terms and the span term; the sample's

@@ -99,10 +99,11 @@ def test_odometry_compensation_on_real_frames(sample_dir):
     runs = {}
     for readout in (0.0, 0.025):
         # without the frame clock, relative poses stay between the captures (velocity = Log(T) / dt)
-        # (and without the depth-drift correction, which moves the pose and not the twist)
+        # (and without the depth-drift correction and the look-ahead, which move the pose and not the twist)
         vo = VisualOdometry(seq.camera, OdometryConfig().replace(sensor={"rolling_shutter_s": readout,
                                                                          "frame_clock": False,
-                                                                         "depth_drift_pairs": 0}))
+                                                                         "depth_drift_pairs": 0,
+                                                                         "rolling_shutter_look_ahead": False}))
         runs[readout] = [vo.register_frame(*f) for f in frames][1:]
     for off, on in zip(runs[0.0], runs[0.025]):
         assert off.tracked and on.tracked
