@@ -444,6 +444,10 @@ class VisualOdometry(DeprecatedStepAccess):
         # correction over one interval there, a spurious change of the camera's motion)
         res = self._corrected_for_drift(step, res, check, b, dt)
         self._settle(ref_step, step)
+        if self._shutter_unmoved(step):
+            # returned as estimated: its current frame's compensation may still miss half the twist's
+            # change over the pair, the error the look-ahead takes out (the term's model at its own size)
+            step.covariance = step.covariance + step.error_bases["rolling_shutter"]
         Ad = self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         self._candidate = self._provisional_pair(step, ref_step, Ad, shutter)
         return step
@@ -694,6 +698,8 @@ class VisualOdometry(DeprecatedStepAccess):
             move = prov.restamp @ prov.shutter @ (0.5 * (step.velocity - pair.velocity))
             pair.relative = pair.relative.compose(gtsam.Pose3.Expmap(move))
             pair.pose = prov.ref_step.pose.compose(pair.relative)
+            if self._shutter_unmoved(pair):  # the move made: its error's term as the settled pairs' fit has it
+                pair.covariance = pair.covariance - pair.error_bases["rolling_shutter"]
         if prov.twist_before is not None:
             B = central_change_basis(prov.motion.matrix(), prov.twist_before, step.velocity, prov.noise_before,
                                      span.noise)
@@ -702,6 +708,16 @@ class VisualOdometry(DeprecatedStepAccess):
             pair.error_bases = {**pair.error_bases, "latency": B}
         pair.pose_covariance = compose_covariance(prov.ref_step.pose, prov.ref_step.pose_covariance, pair.relative,
                                                   pair.covariance)
+
+    def _shutter_unmoved(self, step: OdometryStep) -> bool:
+        """Whether ``step``'s covariance carries, besides the rolling-shutter term, that term's basis
+        once more at its model's size (factor 1), for the error of the current frame's compensation
+        with the pair's mean twist that registering the next frame may take out
+        (``sensor.rolling_shutter_look_ahead``, :meth:`_settle`): every pair with the term on, from
+        its return until that move is made (a pair never moved, e.g. a run's last, keeps it). The
+        term's fitted factor (``sensor.rolling_shutter_factor``) is that of the moved pairs."""
+        return (self.config.sensor.rolling_shutter_factor > 0 and step.error_bases is not None
+                and "rolling_shutter" in step.error_bases)
 
     def _add_twist_change(self, last: OdometryStep, step: OdometryStep) -> None:
         """The change of the twist from ``last``'s pair to ``step``'s into the latency term's history:

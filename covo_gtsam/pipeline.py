@@ -371,7 +371,7 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
                 G2oWriter(out / "graph.g2o") as g2o_w:
 
             def write(i: int, step) -> None:
-                """A posed step into the outputs, once settled (the next frame may revise its covariance)."""
+                """A posed step into the outputs, once settled (the next frame may revise its pose and covariance)."""
                 t = step.timestamp
                 traj_w.write(t, step.pose.matrix())
                 g2o_w.vertex(i, step.pose.matrix())

@@ -83,7 +83,9 @@ class OdometryStep:
     depth_jump_s: float = field(default=0.0, repr=False)
     #: False while registering the next frame may still revise ``covariance``, ``pose_covariance``
     #: and ``error_bases["latency"]`` (``sensor.latency_look_ahead``: the latency term is then taken
-    #: from the change of the twist across the pair, the next pair's twist minus the one before)
+    #: from the change of the twist across the pair, the next pair's twist minus the one before),
+    #: and ``relative`` and ``pose`` (``sensor.rolling_shutter_look_ahead``: the current frame's
+    #: compensation with the twist at its stamp, the mean of this pair's and the next pair's)
     settled: bool = True
     quality: float | None = None
     flagged: bool = False
