@@ -141,7 +141,9 @@ class SensorConfig:
     timing_sigma_s: float = number(0.0, "a frame's capture-time error (frame-level term)", "s", "non-negative",
                                    maximum=1.0)
     rolling_shutter_factor: float = number(0.993, "error of the rolling-shutter compensation's twist, times its "
-                                           "model (frame-level term)", "factor", "non-negative", maximum=100.0)
+                                           "model, of poses the look-ahead moved (frame-level term; a pose not "
+                                           "moved takes the model once more)", "factor", "non-negative",
+                                           maximum=100.0)
     stamp_jitter_s: float = number(0.002, "the stamps' jitter before the frame clock places them (frame-level "
                                    "term, a prior)", "s", "non-negative", maximum=1.0)
     latency_sigma_s: float = number(0.00708, "the stamps' unknown common delay against the clock the poses are used "

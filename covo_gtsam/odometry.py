@@ -218,10 +218,11 @@ class VisualOdometry(DeprecatedStepAccess):
         the reference frame (the keyframe with ``tracking.keyframes``, else the previous posed frame;
         ``step.ref_timestamp``), or why it has none. After a lost frame the next is matched to the
         last posed frame; after ``tracking.restart_after`` lost frames in a row an unmatched frame
-        starts a new segment. With ``sensor.latency_look_ahead`` (the default) a pair's covariance
-        is final one frame later: registering the next frame may replace the returned step's
-        ``covariance``, ``pose_covariance`` and ``error_bases`` by revised ones (``step.settled`` tells;
-        :func:`~covo_gtsam.pipeline.run_sequence` writes each step once settled).
+        starts a new segment. With ``sensor.latency_look_ahead`` and ``sensor.rolling_shutter_look_ahead``
+        (the defaults) a pair is final one frame later: registering the next frame may replace the
+        returned step's ``relative``, ``pose``, ``covariance``, ``pose_covariance`` and ``error_bases``
+        by revised ones (``step.settled`` tells; the covariance as returned covers the pose as
+        returned; :func:`~covo_gtsam.pipeline.run_sequence` writes each step once settled).
 
         ``image``: as in :meth:`prepare`, or its :class:`FrameData` (e.g. made on another thread;
         ``depth`` is then ignored). ``timestamp`` (s): finite and not earlier than the previous

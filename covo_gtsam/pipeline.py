@@ -453,7 +453,8 @@ def calibrate_sequence(
     ground truth.
 
     Runs the odometry with the per-point model alone (``config`` with ``correlation_factor = 1``
-    and every other term zero, frame to frame) into ``out_dir`` and fits the consecutive pairs
+    and every other term zero, frame to frame, the poses moved by the rolling-shutter look-ahead)
+    into ``out_dir`` and fits the consecutive pairs
     (one frame interval) that have ground truth, with the frame-level terms named in ``terms``
     (:data:`~covo_gtsam.calibration.DEFAULT_TERMS` if None); ``correlation_factor`` stays 1 (the
     per-point model as it is) unless ``fit_correlation_factor``. Pairs the integrity check flagged are
@@ -493,8 +494,10 @@ def calibrate_sequence(
     span_prior = config.sensor.span_factor
     priors = {k: getattr(config.sensor, ERROR_TERMS[k]) for k in PRIOR_TERMS}
     no_terms = {name: 0.0 for name in ERROR_TERMS.values()}
+    # the poses moved by the rolling-shutter look-ahead: its factor is that of moved poses (a pose never
+    # moved takes the term's model once more, VisualOdometry._shutter_unmoved)
     config = config.replace(sensor={"correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0,
-                                    **no_terms}, tracking={"keyframes": False})
+                                    "rolling_shutter_look_ahead": True, **no_terms}, tracking={"keyframes": False})
     result = run_sequence(seq, out_dir, config=config, max_frames=max_frames, plots=False, progress=progress,
                           keep_error_bases=True)
     lookup = ground_truth_lookup(seq)

@@ -284,6 +284,7 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     # the per-point model alone is too confident on real data (ANEES well above 3); the fit inflates
     # it, here mostly through the frame term
     assert min(s["per_point_model_anees"]) > 6 and 0.3 < s["correlation_factor"] < 3
+    # (the translation frame term may fit 0, as on the shared frames, where the depth terms take its place)
     assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 <= s["frame_sigma_trans_m"] < 0.01
     printed = capsys.readouterr().out.splitlines()
     lines = [ln for ln in printed if ln.split(" = ")[0].isidentifier()]
