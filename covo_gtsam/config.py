@@ -133,30 +133,30 @@ class SensorConfig:
                                          "(depth images stamped apart from the colour images)")
     correlation_factor: float = number(1.0, "kappa: multiplies the per-point covariance, for errors shared by the "
                                        "points", "factor", minimum=MIN_SCALE, maximum=MAX_SCALE)
-    frame_sigma_rot_deg: float = number(0.0553, "per-axis rotation error common to a pair, per frame interval "
+    frame_sigma_rot_deg: float = number(0.0559, "per-axis rotation error common to a pair, per frame interval "
                                         "(variance grows k times over k intervals)", "deg", "non-negative",
                                         maximum=180.0)
     frame_sigma_trans_m: float = number(0.0, "per-axis translation error common to a pair, per frame interval "
                                         "(variance grows k^2 times)", "m", "non-negative", maximum=1e3)
     timing_sigma_s: float = number(0.0, "a frame's capture-time error (frame-level term)", "s", "non-negative",
                                    maximum=1.0)
-    rolling_shutter_factor: float = number(0.993, "error of the rolling-shutter compensation's twist, times its "
+    rolling_shutter_factor: float = number(1.02, "error of the rolling-shutter compensation's twist, times its "
                                            "model, of poses the look-ahead moved (frame-level term; a pose not "
                                            "moved takes the model once more)", "factor", "non-negative",
                                            maximum=100.0)
     stamp_jitter_s: float = number(0.002, "the stamps' jitter before the frame clock places them (frame-level "
                                    "term, a prior)", "s", "non-negative", maximum=1.0)
-    latency_sigma_s: float = number(0.00708, "the stamps' unknown common delay against the clock the poses are used "
+    latency_sigma_s: float = number(0.00682, "the stamps' unknown common delay against the clock the poses are used "
                                     "on (frame-level term)", "s", "non-negative", maximum=1.0)
-    depth_scale_sigma: float = number(0.00044, "a frame's depths all scaled by 1 + e (frame-level term)",
+    depth_scale_sigma: float = number(0.000424, "a frame's depths all scaled by 1 + e (frame-level term)",
                                       "fraction", "non-negative", maximum=1.0)
-    depth_time_factor: float = number(0.300, "error of the colour-depth time offset, times the stamped offset "
+    depth_time_factor: float = number(0.349, "error of the colour-depth time offset, times the stamped offset "
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
     depth_jump_factor: float = number(1.0, "the depth image read whole depth periods earlier or later than at the "
                                       "pair's other frame (its nearest depth image switched to a neighbour): this "
                                       "times that change (frame-level term, a prior; 1: the whole change)", "factor",
                                       "non-negative", maximum=100.0)
-    span_factor: float = number(0.209, "translation error per frame interval that persists over a pair's intervals "
+    span_factor: float = number(0.211, "translation error per frame interval that persists over a pair's intervals "
                                 "beyond the first, times the camera's recent translation per interval (frame-level "
                                 "term; 0 for consecutive pairs)", "factor", "non-negative", maximum=100.0)
     depth_drift_pairs: int = integer(10, "recent pairs whose depth-free estimates' disagreement along the depth-scale "

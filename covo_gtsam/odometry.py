@@ -81,7 +81,7 @@ class _Provisional(NamedTuple):
     from the captures to the stamps with; for its latency term (``sensor.latency_look_ahead``) the
     twist of the pair before it with that twist's noise, and for its current frame's rolling-shutter
     compensation (``sensor.rolling_shutter_look_ahead``) the estimate's response (6x6) to an error
-    of that compensation's twist (None where not settled)."""
+    of that compensation's twist and the twist (6,) it was compensated with (None where not settled)."""
 
     step: OdometryStep
     ref_step: OdometryStep
@@ -90,7 +90,7 @@ class _Provisional(NamedTuple):
     restamp: np.ndarray
     twist_before: np.ndarray | None
     noise_before: np.ndarray | None
-    shutter: np.ndarray | None
+    shutter: tuple[np.ndarray, np.ndarray] | None
 
 
 def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
@@ -166,6 +166,8 @@ class VisualOdometry(DeprecatedStepAccess):
         #: the last pair, while the next may still settle its latency term; the pair being registered
         self._provisional: _Provisional | None = None
         self._candidate: _Provisional | None = None
+        #: the twists (6,) the last pair solved compensated its reference and current frame with
+        self._compensation: tuple[np.ndarray, np.ndarray] | None = None
         #: stamp of the last posed frame and of the keyframe -> what their twists were taken over
         self._posed_twists: dict[float, _TwistSpan] = {}
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
@@ -555,8 +557,10 @@ class VisualOdometry(DeprecatedStepAccess):
             or self.config.noise.exposure_s > 0)
         if compensate and initial is None:
             initial = self._solve(X_ref, X_cur, pairs, None).pose
+        self._compensation = None
         if compensate:
             twist_ref, twist_cur = self._frame_twists(initial, dt, ref_step, timestamp)
+            self._compensation = (twist_ref, twist_cur)
             pairs = self._with_motion_noise(pairs, ref, frame, twist_ref, twist_cur)
             X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
             X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
@@ -671,7 +675,11 @@ class VisualOdometry(DeprecatedStepAccess):
             trusted = _trusted_velocity(ref_step)
             if trusted is not None:
                 twist_before, noise_before = np.asarray(trusted, dtype=float), before.noise
-        shutter = shutter if sensor.rolling_shutter_look_ahead else None
+        used = self._compensation
+        if not (sensor.rolling_shutter_look_ahead and shutter is not None and used is not None):
+            shutter = None
+        else:
+            shutter = (shutter, used[1])
         if twist_before is None and shutter is None:
             return None
         return _Provisional(step, ref_step, span.motion, span.intervals, Ad, twist_before, noise_before, shutter)
@@ -681,10 +689,11 @@ class VisualOdometry(DeprecatedStepAccess):
         right after it; its pose covariance recomposed (it is the last posed frame: nothing was
         composed onto it yet).
 
-        - Its current frame's rows were moved to the stamp with the pair's mean twist, about half an
-          interval early; the twist at the stamp is about the mean of that twist and ``step``'s,
-          so the pose moves by the response to half their difference (docs/derivation.md, "The
-          rolling shutter at the current frame, one frame late").
+        - Its current frame's rows were moved to the stamp with the twist of its own pair, about
+          half an interval early; ``step`` moved the same frame's rows, its reference's, with the
+          mean of that twist and its own, about the twist at the stamp. The pose moves by the
+          response to the difference, so both pairs read the frame compensated alike
+          (docs/derivation.md, "The rolling shutter at the current frame, one frame late").
         - Its latency term is taken from the change of the twist across it
           (:func:`~covo_gtsam.calibration.central_change_basis`: ``step``'s twist minus the pair
           before's) in place of the recent changes' mean.
@@ -695,8 +704,9 @@ class VisualOdometry(DeprecatedStepAccess):
                 or span.start != ref_step.timestamp or span.intervals != prov.intervals):
             return
         pair = prov.step
-        if prov.shutter is not None:
-            move = prov.restamp @ prov.shutter @ (0.5 * (step.velocity - pair.velocity))
+        if prov.shutter is not None and self._compensation is not None:
+            S, used = prov.shutter
+            move = prov.restamp @ S @ (self._compensation[0] - used)
             pair.relative = pair.relative.compose(gtsam.Pose3.Expmap(move))
             pair.pose = prov.ref_step.pose.compose(pair.relative)
             if self._shutter_unmoved(pair):  # the move made: its error's term as the settled pairs' fit has it

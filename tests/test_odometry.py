@@ -331,13 +331,16 @@ def test_the_next_frame_settles_a_pairs_latency_term_from_the_change_across_it(s
     assert n_revised >= 20 and n_moved >= 5
 
 
-def test_the_next_frame_moves_a_pairs_pose_by_its_rolling_shutter_response_to_half_the_twists_change(
+def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensated_the_frame_with(
         sample_dir, monkeypatch):
     """With ``sensor.rolling_shutter_look_ahead`` registering the next frame moves the last pair's
-    relative pose by its current frame's rolling-shutter response (the one its covariance's term
-    was built with) to half the change of the twist to the next pair's, moved to the stamps with
-    the pair's restamp adjoint: ``T <- T Exp(Ad S (w_next - w) / 2)``; its pose is the reference's
-    composed with it, before the next pose is composed onto it, and a history keeps the moved step.
+    relative pose by its current frame's rolling-shutter response ``S`` (the one its covariance's
+    term was built with) to the difference of the twists that frame's rows were moved with: by the
+    next pair, as its reference (the mean of the next pair's own and this pair's final twist), less
+    by this pair (its own, from the outlier rejection's pose, not its final twist), moved to the
+    stamps with the pair's restamp adjoint: ``T <- T Exp(Ad S (c_ref,next - c_cur))``; its pose is
+    the reference's composed with it, before the next pose is composed onto it, and a history keeps
+    the moved step.
     A pair is returned with the term's basis once more in its covariance (the error the move takes
     out, at the model's size) and the move takes exactly that out; a pair not moved keeps it.
     Without the look-ahead the relative pose and covariance stay as returned. (The latency
@@ -346,8 +349,14 @@ def test_the_next_frame_moves_a_pairs_pose_by_its_rolling_shutter_response_to_ha
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.steps import StepHistory
 
-    responses, restamps = {}, []
+    responses, restamps, used = {}, [], {}
     original_bases, original_restamp = VisualOdometry._error_bases, odometry.restamp
+    original_solve = VisualOdometry._solve_pair
+
+    def solve_pair(self, *args):
+        out = original_solve(self, *args)
+        used[args[5]] = self._compensation  # by the pair's timestamp: the two frames' compensation twists
+        return out
 
     def error_bases(self, *args):
         out = original_bases(self, *args)
@@ -360,6 +369,7 @@ def test_the_next_frame_moves_a_pairs_pose_by_its_rolling_shutter_response_to_ha
         return out
 
     monkeypatch.setattr(VisualOdometry, "_error_bases", error_bases)
+    monkeypatch.setattr(VisualOdometry, "_solve_pair", solve_pair)
     monkeypatch.setattr(odometry, "restamp", restamp)
     seq = TumSequence(sample_dir)
     frames = [(*seq.load(i), seq.timestamps[i], seq.depth_timestamps[i]) for i in range(30)]
@@ -383,7 +393,10 @@ def test_the_next_frame_moves_a_pairs_pose_by_its_rolling_shutter_response_to_ha
             S = responses[a.timestamp]
             expected, expected_cov = returned[k], covs[k]
             if on and S is not None and nxt.has_relative_pose and nxt.ref_timestamp == a.timestamp and not nxt.flagged:
-                move = moved[k] @ S @ (0.5 * (nxt.velocity - a.velocity))
+                (_, c_cur), (c_ref_next, c_cur_next) = used[a.timestamp], used[nxt.timestamp]
+                np.testing.assert_allclose(c_ref_next, 0.5 * (c_cur_next + a.velocity), rtol=1e-12, atol=1e-12)
+                assert not np.allclose(c_cur, a.velocity)
+                move = moved[k] @ S @ (c_ref_next - c_cur)
                 expected = returned[k].compose(gtsam.Pose3.Expmap(move))
                 expected_cov = covs[k] - a.error_bases["rolling_shutter"]
                 assert np.abs(a.error_bases["rolling_shutter"]).max() > 1e-3 * np.abs(a.covariance).max()

@@ -297,11 +297,12 @@ def test_the_depth_drift_correction_removes_an_injected_drift(seed):
 @pytest.mark.slow
 def test_the_next_twist_takes_most_of_the_rolling_shutters_error_out_of_the_pose():
     """A rolling shutter (25 ms readout) as the only error source but a tenth of the usual point
-    noise: a pair's current frame is compensated with the pair's mean twist, about half an interval
-    early, and moving the pose one frame late by the response to half the change to the next pair's
-    twist (``sensor.rolling_shutter_look_ahead``) takes most of the error out: the rotation's RMS
-    falls to 0.30-0.35 of what it is without (translation 0.54-0.72; two seeds). With the whole
-    change, or with the change's sign turned, the error would not fall below half."""
+    noise: a pair's current frame is compensated with the pair's own twist, about half an interval
+    early, and moving the pose one frame late by the response to the difference from the twist the
+    next pair compensated the same frame with, about the one at its stamp
+    (``sensor.rolling_shutter_look_ahead``), takes most of the error out: the rotation's RMS falls
+    to 0.31-0.35 of what it is without (translation 0.54-0.73; two seeds). With the move's sign
+    turned the error would not fall below half."""
     for seed in (0, 1):
         cfg = SequenceSimulationConfig(frames=120, seed=seed, period_s=1 / 30, pixel_sigma=0.1, depth_noise_scale=0.1,
                                        **{**CLEAN, "readout_s": 0.025})
