@@ -704,7 +704,8 @@ class VisualOdometry(DeprecatedStepAccess):
                 or span.start != ref_step.timestamp or span.intervals != prov.intervals):
             return
         pair = prov.step
-        if prov.shutter is not None and self._compensation is not None:
+        # (not next to a pair whose depth images were read a period apart: its twists are what that corrupts)
+        if prov.shutter is not None and self._compensation is not None and not (pair.depth_jump_s or step.depth_jump_s):
             S, used = prov.shutter
             move = prov.restamp @ S @ (self._compensation[0] - used)
             pair.relative = pair.relative.compose(gtsam.Pose3.Expmap(move))
