@@ -167,10 +167,9 @@ class SensorConfig:
     latency_look_ahead: bool = flag(True, "settle a consecutive pair's latency term one frame late, from the change "
                                     "of the twist across it (the next pair's twist minus the one before); false: "
                                     "from the recent changes' mean, final when the pair is returned")
-    rolling_shutter_look_ahead: bool = flag(True, "move a consecutive pair's pose one frame late by its current "
-                                            "frame's rolling-shutter compensation with the twist at the frame's "
-                                            "stamp (the mean of the pair's and the next pair's twists) in place "
-                                            "of the pair's own")
+    rolling_shutter_look_ahead: bool = flag(True, "move a consecutive pair's pose one frame late as if its current "
+                                            "frame's rows were moved with the twist the next pair moved them with "
+                                            "(about the twist at the frame's stamp) in place of the pair's own")
     angular_acceleration_prior: float = number(
         10.0, "the camera's angular acceleration, RMS over its axes, that the latency and rolling-shutter terms "
         "take until the run has measured a change of its twist (a prior: a hand-held camera)", "rad/s^2",

@@ -166,8 +166,6 @@ class VisualOdometry(DeprecatedStepAccess):
         #: the last pair, while the next may still settle its latency term; the pair being registered
         self._provisional: _Provisional | None = None
         self._candidate: _Provisional | None = None
-        #: the twists (6,) the last pair solved compensated its reference and current frame with
-        self._compensation: tuple[np.ndarray, np.ndarray] | None = None
         #: stamp of the last posed frame and of the keyframe -> what their twists were taken over
         self._posed_twists: dict[float, _TwistSpan] = {}
         self._clock = FrameClock(self.config.sensor.frame_interval_s, self.config.sensor.clock_window)
@@ -416,7 +414,7 @@ class VisualOdometry(DeprecatedStepAccess):
         # time between the two captures: the stamps' difference corrected by the frame clock
         dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)
         try:
-            res, X_ref, X_cur, pairs = self._solve_pair(ref, ref_step, frame, pairs, dt, timestamp)
+            res, X_ref, X_cur, pairs, compensation = self._solve_pair(ref, ref_step, frame, pairs, dt, timestamp)
         except (EstimationError, InputError) as exc:  # InputError: e.g. points moved beyond range by compensation
             step.reason = str(exc)
             return step
@@ -446,13 +444,13 @@ class VisualOdometry(DeprecatedStepAccess):
         # next pair's rolling-shutter compensation takes them (a moved twist would change by the
         # correction over one interval there, a spurious change of the camera's motion)
         res = self._corrected_for_drift(step, res, check, b, dt)
-        self._settle(ref_step, step)
+        self._settle(ref_step, step, compensation)
         if self._shutter_unmoved(step):
             # returned as estimated: its current frame's compensation may still miss half the twist's
             # change over the pair, the error the look-ahead takes out (the term's model at its own size)
             step.covariance = step.covariance + step.error_bases["rolling_shutter"]
         Ad = self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
-        self._candidate = self._provisional_pair(step, ref_step, Ad, shutter)
+        self._candidate = self._provisional_pair(step, ref_step, Ad, shutter, compensation)
         return step
 
     def _bearings_consensus(self, ref: FrameData, frame: FrameData, pairs: PointPairs) -> int:
@@ -541,14 +539,17 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs: PointPairs, dt: float,
                     timestamp: float
-                    ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray, PointPairs]:
-        """``(result, X_ref, X_cur, pairs)``: the pair's relative pose. With motion (``dt > 0``) the
+                    ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray, PointPairs,
+                               tuple[np.ndarray, np.ndarray] | None]:
+        """``(result, X_ref, X_cur, pairs, compensation)``: the pair's relative pose. With motion (``dt > 0``) the
         points are moved to their frames' timestamps (rolling shutter, depth time) and get the
         depth-lookup variance of the colour-depth offsets, both from the camera's twists at the two
         frames; the twists come from the outlier rejection's pose (``pairs.T_init``) and the pair is
         solved once. Without such a pose (e.g. ``outlier_rejection = "none"`` and no prediction)
         the pair is solved on the unmoved points, the twists are taken from that solution and it is
-        solved again. The points and pairs returned are those of the last solve."""
+        solved again. The points and pairs returned are those of the last solve; ``compensation``
+        the twists (6,) the reference's and the current frame's points were moved with (None when
+        not moved)."""
         X_ref, X_cur = pairs.X_ref, pairs.X_cur
         initial = None if pairs.T_init is None else gtsam.Pose3(pairs.T_init)
         compensate = dt > 0 and (
@@ -557,14 +558,14 @@ class VisualOdometry(DeprecatedStepAccess):
             or self.config.noise.exposure_s > 0)
         if compensate and initial is None:
             initial = self._solve(X_ref, X_cur, pairs, None).pose
-        self._compensation = None
+        compensation = None
         if compensate:
             twist_ref, twist_cur = self._frame_twists(initial, dt, ref_step, timestamp)
-            self._compensation = (twist_ref, twist_cur)
+            compensation = (twist_ref, twist_cur)
             pairs = self._with_motion_noise(pairs, ref, frame, twist_ref, twist_cur)
             X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
             X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
-        return self._solve(X_ref, X_cur, pairs, initial), X_ref, X_cur, pairs
+        return self._solve(X_ref, X_cur, pairs, initial), X_ref, X_cur, pairs, compensation
 
     def _with_motion_noise(self, pairs: PointPairs, ref: FrameData, frame: FrameData, twist_ref: np.ndarray,
                            twist_cur: np.ndarray) -> PointPairs:
@@ -658,12 +659,14 @@ class VisualOdometry(DeprecatedStepAccess):
         return Ad
 
     def _provisional_pair(self, step: OdometryStep, ref_step: OdometryStep, Ad: np.ndarray,
-                          shutter: np.ndarray | None) -> _Provisional | None:
+                          shutter: np.ndarray | None, compensation: tuple[np.ndarray, np.ndarray] | None
+                          ) -> _Provisional | None:
         """``step`` as a pair the next pair may settle (:meth:`_settle`): frame to frame, not flagged,
         with its own twist; its latency term with ``sensor.latency_look_ahead`` where the pair before
         has a trusted twist over as many intervals, and its current frame's rolling-shutter
         compensation with ``sensor.rolling_shutter_look_ahead`` where ``shutter`` (the response,
-        6x6) is given; None where neither."""
+        6x6) and ``compensation`` (the pair's compensation twists, :meth:`_solve_pair`) are given;
+        None where neither."""
         sensor = self.config.sensor
         span = self._twist_noise.get(step.timestamp)
         if (self.config.tracking.keyframes or step.flagged or ref_step.flagged or span is None
@@ -675,19 +678,20 @@ class VisualOdometry(DeprecatedStepAccess):
             trusted = _trusted_velocity(ref_step)
             if trusted is not None:
                 twist_before, noise_before = np.asarray(trusted, dtype=float), before.noise
-        used = self._compensation
-        if not (sensor.rolling_shutter_look_ahead and shutter is not None and used is not None):
+        if not (sensor.rolling_shutter_look_ahead and shutter is not None and compensation is not None):
             shutter = None
         else:
-            shutter = (shutter, used[1])
+            shutter = (shutter, compensation[1])
         if twist_before is None and shutter is None:
             return None
         return _Provisional(step, ref_step, span.motion, span.intervals, Ad, twist_before, noise_before, shutter)
 
-    def _settle(self, ref_step: OdometryStep, step: OdometryStep) -> None:
+    def _settle(self, ref_step: OdometryStep, step: OdometryStep,
+                compensation: tuple[np.ndarray, np.ndarray] | None) -> None:
         """The pair ending at ``ref_step`` settled by ``step``, a trusted pair over as many intervals
-        right after it; its pose covariance recomposed (it is the last posed frame: nothing was
-        composed onto it yet).
+        right after it whose frames' points were moved with the twists ``compensation``
+        (:meth:`_solve_pair`); its pose covariance recomposed (it is the last posed frame: nothing
+        was composed onto it yet).
 
         - Its current frame's rows were moved to the stamp with the twist of its own pair, about
           half an interval early; ``step`` moved the same frame's rows, its reference's, with the
@@ -705,9 +709,9 @@ class VisualOdometry(DeprecatedStepAccess):
             return
         pair = prov.step
         # (not next to a pair whose depth images were read a period apart: its twists are what that corrupts)
-        if prov.shutter is not None and self._compensation is not None and not (pair.depth_jump_s or step.depth_jump_s):
+        if prov.shutter is not None and compensation is not None and not (pair.depth_jump_s or step.depth_jump_s):
             S, used = prov.shutter
-            move = prov.restamp @ S @ (self._compensation[0] - used)
+            move = prov.restamp @ S @ (compensation[0] - used)
             pair.relative = pair.relative.compose(gtsam.Pose3.Expmap(move))
             pair.pose = prov.ref_step.pose.compose(pair.relative)
             if self._shutter_unmoved(pair):  # the move made: its error's term as the settled pairs' fit has it

@@ -137,11 +137,11 @@ def test_odometry_compensates_with_the_ransac_pose_in_one_solve(sample_dir, monk
         return pairs, vo._solve_pair(ref, ref_step, cur, pairs, seq.timestamps[1] - seq.timestamps[0],
                                      seq.timestamps[1]), calls
 
-    pairs, (_, X_ref, _, solved), calls = solve_pair("rigid3d")
+    pairs, (_, X_ref, _, solved, _), calls = solve_pair("rigid3d")
     assert len(calls) == 1 and calls[0][2] is not None  # one solve, from the RANSAC's pose
     assert calls[0][0] is X_ref and calls[0][1] is solved
     assert not np.array_equal(X_ref, pairs.X_ref) and np.all(solved.Q_ref[:, 2, 2] >= pairs.Q_ref[:, 2, 2])
-    pairs, (_, X_ref, _, solved), calls = solve_pair("none")
+    pairs, (_, X_ref, _, solved, _), calls = solve_pair("none")
     assert pairs.T_init is None and len(calls) == 2 and calls[0][2] is None and calls[1][2] is not None
     assert calls[0][1] is pairs and calls[1][0] is X_ref and calls[1][1] is solved
     assert not np.array_equal(X_ref, pairs.X_ref) and np.any(solved.Q_ref != pairs.Q_ref)
