@@ -23,7 +23,13 @@ physical size (:data:`ERROR_TERMS`):
   frame, since the frame's pose is then off by ``Exp(d xi_f)`` (:func:`stamp_error_basis`);
 * ``depth_scale`` (relative): a frame's depths all scaled by ``1 + e``;
 * ``depth_time`` (dimensionless): the depth image's time off by ``c`` times the frame's stamped
-  colour-depth offset (a depth image delivered with the neighbouring colour image);
+  colour-depth offset (a depth image delivered with the neighbouring colour image), independently
+  at the pair's two frames: ``B = h_ref h_ref^T + h_cur h_cur^T``, ``h_f`` the pair's response to
+  frame ``f``'s depths read its stamped offset later (:func:`~covo_gtsam.frame_errors.depth_time_basis`);
+* ``depth_time_coherent`` (dimensionless): the depths read at the stamped offsets themselves, not
+  compensated, both frames' effects together: ``B = (h_ref + h_cur)(h_ref + h_cur)^T``; 1 where the
+  stamps are the depth images' true capture times (the realistic simulation's), less where they
+  tell the offsets only in part;
 * ``rolling_shutter`` (dimensionless): the twist the rolling-shutter compensation uses at the
   current frame off by ``c`` times half the change of the pair twist since the previous pair;
 * ``latency`` (s): the stamps all late (or early) by one unknown constant against the clock
@@ -75,11 +81,12 @@ __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
+               "depth_time_coherent": "depth_time_coherent_factor",
                "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s",
                "latency": "latency_sigma_s", "span": "span_factor", "depth_jump": "depth_jump_factor"}
 #: The terms of the default model fitted on consecutive pairs (``stamp_jitter`` is a prior and ``span``
 #: needs longer pairs; docs/cross_validation.md).
-DEFAULT_TERMS = ("timing", "rolling_shutter", "latency", "depth_scale", "depth_time")
+DEFAULT_TERMS = ("timing", "rolling_shutter", "latency", "depth_scale", "depth_time", "depth_time_coherent")
 #: Terms held at their configured value (a prior) when the others are fitted.
 PRIOR_TERMS = ("stamp_jitter", "depth_jump")
 #: Fewest pairs over more than one interval the ``span`` term is fitted on (:func:`fit_span_factor`).

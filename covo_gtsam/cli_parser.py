@@ -252,7 +252,8 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
         help="fit the sensor terms of the covariance on a sequence with ground truth",
         description="Fit the sensor terms of the reported covariance (correlation_factor, frame_sigma_rot_deg, "
         "frame_sigma_trans_m and the frame-level terms timing_sigma_s, rolling_shutter_factor, latency_sigma_s, "
-        "depth_scale_sigma, depth_time_factor; see covo_gtsam.calibration) by maximum likelihood on the consecutive "
+        "depth_scale_sigma, depth_time_factor, depth_time_coherent_factor; see covo_gtsam.calibration) by maximum "
+        "likelihood on the consecutive "
         "frame pairs of a sequence with ground truth, for a sensor other than the Kinect v1 the defaults belong to; "
         "then span_factor (pairs over more than one frame interval) on the pairs of runs over every 2nd and 3rd "
         "frame, the other terms held (it keeps the configured value with fewer than 10 such pairs, about 50 "

@@ -150,8 +150,11 @@ class SensorConfig:
                                     "on (frame-level term)", "s", "non-negative", maximum=1.0)
     depth_scale_sigma: float = number(0.000424, "a frame's depths all scaled by 1 + e (frame-level term)",
                                       "fraction", "non-negative", maximum=1.0)
-    depth_time_factor: float = number(0.349, "error of the colour-depth time offset, times the stamped offset "
+    depth_time_factor: float = number(0.259, "error of the colour-depth time offset, times the stamped offset "
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
+    depth_time_coherent_factor: float = number(
+        0.297, "the stamped colour-depth offsets' own effect, the pair's two frames together, times this (frame-level "
+        "term; 1: the depth images taken at their stamps, uncompensated)", "factor", "non-negative", maximum=100.0)
     depth_jump_factor: float = number(1.0, "the depth image read whole depth periods earlier or later than at the "
                                       "pair's other frame (its nearest depth image switched to a neighbour): this "
                                       "times that change (frame-level term, a prior; 1: the whole change)", "factor",

@@ -822,7 +822,8 @@ class VisualOdometry(DeprecatedStepAccess):
         bases["stamp_jitter"] = stamp_error_basis(M, twist_ref, velocity, weights)
         h_ref = ref.depth_offset * depth_time_basis(G_ref, X_ref, twist_ref)
         h_cur = frame.depth_offset * depth_time_basis(G_cur, X_cur, velocity)
-        bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)
+        bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)  # each frame's offset's error
+        bases["depth_time_coherent"] = np.outer(h_ref + h_cur, h_ref + h_cur)  # the offsets themselves
         # the depth images read whole periods apart (the nearest depth image switched to a neighbour):
         # as if the current frame's were read half the change later and the reference's half earlier
         jump = self._depth_jump(ref, frame)

@@ -57,7 +57,7 @@ MODELS = {"kappa + frame term": (True, ()), "+ timing": (True, ("timing",)),
           "+ timing, rolling shutter": (True, ("timing", "rolling_shutter")),
           "+ timing, rolling shutter, latency": (True, LATENCY_TERMS),
           "+ latency, kappa 1": (False, LATENCY_TERMS),
-          "+ latency, depth scale, depth time; kappa 1 (default)": (False, DEFAULT_TERMS)}
+          "+ latency, depth scale, depth time (both forms); kappa 1 (default)": (False, DEFAULT_TERMS)}
 CHAIN = 30
 #: the pairs the per-pair tables report: sequence, then (label, first and last frame a pair ends at)
 SEGMENTS = ((RPY, (("fr1_rpy, frames 1-119", 1, 119), ("fr1_rpy, frames 120-239", 120, 239))),
@@ -145,7 +145,7 @@ def check(fit, p: dict) -> str:
 
 
 UNITS = {"timing": (1e3, "ms"), "latency": (1e3, "ms"), "depth_scale": (1e2, "%"), "depth_time": (1.0, ""),
-         "rolling_shutter": (1.0, "")}
+         "depth_time_coherent": (1.0, ""), "rolling_shutter": (1.0, "")}
 
 
 def fit_row(fit) -> str:

@@ -42,17 +42,6 @@ SIM = SequenceSimulationConfig(period_s=1 / 29.7, stamp_jitter_s=0.002, stamp_la
 FASTER = (4.0, 6.0)
 
 
-def depth_time_expected(c: SequenceSimulationConfig) -> float:
-    """The colour-depth time factor a fit should find here. The simulated offsets are the true ones,
-    uncompensated, so a pair's error is the current frame's offset effect minus the reference's,
-    alike in size; the term's form takes the two frames' offset errors as independent, each
-    ``factor * offset``. Equal variances: ``factor^2 E[d_cur^2 + d_ref^2] = E[(d_cur - d_ref)^2]``,
-    for offsets uniform in [a, b]: ``factor = sqrt(var / E[d^2])``."""
-    a, b = c.depth_offset_s
-    var = (b - a) ** 2 / 12.0
-    return float(np.sqrt(var / (var + (0.5 * (a + b)) ** 2)))
-
-
 #: the stamp delay alone: no jitter, rolling shutter, colour-depth offset, depth-scale error or bad frame
 DELAY_ONLY = dict(stamp_jitter_s=0.0, readout_s=0.0, depth_offset_s=(0.0, 0.0), depth_scale_sigma=0.0,
                   bad_frame_rate=0.0, period_s=1 / 30)
@@ -127,13 +116,15 @@ def source_rows(seeds: range, frames: int) -> list[str]:
 
 
 def offset_rows(seeds: range, frames: int) -> list[str]:
-    """The colour-depth offsets alone (no readout or delay), per angular speed: the colour-depth time factor
-    fitted in sample (uncompensated) and the ANEES t / r with the depths moved to the colour image's
-    time by the stamped offsets, which are the true ones here (``depth_time_compensation``, the
-    terms zero): what is left of the offsets' effect once compensated with the pairs' twists."""
+    """The colour-depth offsets alone (no readout or delay), per angular speed: the coherent colour-depth
+    factor (the offsets' own effect; 1 here, where the stamped offsets are the true ones) and the
+    independent one (an error of each offset; 0 here) fitted in sample (uncompensated), and the
+    ANEES t / r with the depths moved to the colour image's time by the stamped offsets, which are
+    the true ones here (``depth_time_compensation``, the terms zero): what is left of the offsets'
+    effect once compensated with the pairs' twists."""
     rows = []
     for speed in (SIM.max_angular_speed, *FASTER):
-        factor, compensated = [], []
+        coherent, factor, compensated = [], [], []
         for seed in seeds:
             cfg = dataclasses.replace(SIM, frames=frames, seed=seed, max_angular_speed=speed,
                                       **{**DELAY_ONLY, "stamp_latency_s": 0.0, "depth_offset_s": OFFSETS})
@@ -141,12 +132,13 @@ def offset_rows(seeds: range, frames: int) -> list[str]:
             q = simulate_sequence(cfg, truth)
             m = q.consecutive & ~q.flagged
             fit = fit_sensor_terms(q.errors[m], q.covariances[m], bases={k: v[m] for k, v in q.bases.items()})
+            coherent.append(fit.sigmas["depth_time_coherent"])
             factor.append(fit.sigmas["depth_time"])
             q = simulate_sequence(cfg, truth.replace(sensor={"depth_time_compensation": True}))
             m = q.consecutive & ~q.flagged
             compensated.append((nees(q.errors[m, 3:], q.covariances[m][:, 3:, 3:]).mean(),
                                 nees(q.errors[m, :3], q.covariances[m][:, :3, :3]).mean()))
-        rows.append(f"| {speed:g} | {mean_sd(factor)} | {mean_sd([c[0] for c in compensated])} / "
+        rows.append(f"| {speed:g} | {mean_sd(coherent)} | {mean_sd(factor)} | {mean_sd([c[0] for c in compensated])} / "
                     f"{mean_sd([c[1] for c in compensated])} |")
     return rows
 
@@ -291,6 +283,7 @@ def main() -> None:
             fit = fit_sensor_terms(q.errors[m], q.covariances[m], bases={k: v[m] for k, v in q.bases.items()})
             rec.setdefault("scale" + suffix, []).append(100 * fit.sigmas["depth_scale"])
             rec.setdefault("dtime" + suffix, []).append(fit.sigmas["depth_time"])
+            rec.setdefault("dcoh" + suffix, []).append(fit.sigmas["depth_time_coherent"])
             rec.setdefault("rs" + suffix, []).append(fit.sigmas["rolling_shutter"])
             rec.setdefault("timing" + suffix, []).append(1e3 * fit.sigmas["timing"])
             rec.setdefault("latency" + suffix, []).append(1e3 * fit.sigmas["latency"])
@@ -338,10 +331,10 @@ def main() -> None:
              "|---|---|---|---|",
              f"| depth scale (%) | {100 * c.depth_scale_sigma:g} | {mean_sd(rec['scale'])} | "
              f"{mean_sd(rec['scale0'])} |",
-             f"| colour-depth time factor | {depth_time_expected(c):.2g} (the true offsets, uncompensated, in the "
-             "term's independent form; derivation.md) | "
-             f"{mean_sd(rec['dtime'])} | "
-             f"{mean_sd(rec['dtime0'])} |",
+             "| colour-depth offsets' own effect (coherent factor) | 1 (the stamped offsets are the true ones, "
+             f"uncompensated) | {mean_sd(rec['dcoh'])} | {mean_sd(rec['dcoh0'])} |",
+             "| error of each frame's colour-depth offset (independent factor) | 0 (the stamped offsets are the true "
+             f"ones) | {mean_sd(rec['dtime'])} | {mean_sd(rec['dtime0'])} |",
              f"| rolling-shutter residual factor | below 1 (the poses moved by the next twist, the default, take "
              f"most of the compensation's error out) | {mean_sd(rec['rs'])} | {mean_sd(rec['rs0'])} |",
              f"| rolling-shutter residual factor, poses not moved (`rolling_shutter_look_ahead` false) | about 1 "
@@ -394,15 +387,16 @@ def main() -> None:
              "### Colour-depth offsets at faster turns", "",
              "The colour-depth offsets alone (uniform "
              f"{1e3 * OFFSETS[0]:g}-{1e3 * OFFSETS[1]:g} ms; no readout, jitter, delay, "
-             "depth-scale error or bad frame), the odometry told the true noise: the colour-depth time factor fitted "
-             "in sample at each speed with the offsets uncompensated (expected "
-             f"{depth_time_expected(dataclasses.replace(SIM, depth_offset_s=OFFSETS)):.2g}"
-             " in the term's independent form), and the ANEES t / r of the pairs with each point moved along its ray "
+             "depth-scale error or bad frame), the odometry told the true noise: the two colour-depth factors "
+             "fitted in sample at each speed with the offsets uncompensated (the coherent one, the offsets' own "
+             "effect, expected 1 at any speed; the independent one, an error of each offset, expected 0), and the "
+             "ANEES t / r of the pairs with each point moved along its ray "
              "by the stamped offset, which is the true one here (`sensor.depth_time_compensation`; the terms zero). "
              f"Mean ± s.d. over {len(lag_seeds)} seeds. docs/derivation.md (\"Colour-depth offsets at fast turns\") "
              "has what this rests on.", "",
-             "| angular speed up to (rad/s) | colour-depth time factor, uncompensated | ANEES t / r, compensated |",
-             "|---|---|---|", *offsets, "",
+             "| angular speed up to (rad/s) | coherent factor, uncompensated | independent factor, uncompensated | "
+             "ANEES t / r, compensated |",
+             "|---|---|---|---|", *offsets, "",
              "## Depth images on their own clock", "",
              f"Depth images captured on a clock {100 * (DEPTH_CLOCK - 1):g} % slower than the colour images' "
              "(33.333 ms), stamped with 2 ms of jitter like them, each colour frame taking the depth image with the "

@@ -48,11 +48,13 @@ def _switched_run(fr1_rpy_dir, depth_jump_factor: float, keyframes: bool = False
 @pytest.mark.slow
 @pytest.mark.realdata
 def test_pairs_with_a_switched_depth_image_are_covered_on_real_frames(fr1_rpy_dir):
-    """With the jump term the pairs a period apart have translation ANEES 2.64 (other pairs 2.55);
+    """With the jump term the pairs a period apart have translation ANEES 2.23 (other pairs 2.50);
+    without it 4.95 (the colour-depth offsets' coherent term carries a little of the jump: 5.10
+    without that term; when the jump term was introduced, 2.64 with it, 6.53 without, and 4.68 with
     its basis from each point's own depth change alone, without the depth image's change at the
-    fixed pixel, gave 4.68, and without the term they have 6.53. Their depth lookups' variance over
-    half the jump weighs the points beside depth edges down: translation error RMS 21.4 mm, 27.6 mm
-    over each frame's own stamped offset."""
+    fixed pixel). Their depth lookups' variance over half the jump weighs the points beside depth
+    edges down: translation error RMS 13.3 mm today (21.4 mm when introduced, 27.6 mm over each
+    frame's own stamped offset)."""
     nt, jump, posed, reported, rms = _switched_run(fr1_rpy_dir, 1.0)
     assert jump.sum() >= 30
     assert rms < 0.025
@@ -60,7 +62,7 @@ def test_pairs_with_a_switched_depth_image_are_covered_on_real_frames(fr1_rpy_di
     assert nt[jump].mean() < 3.5
     assert nt[~jump].mean() < 3.5  # the term is zero there: the rest of the run as before
     off, *_ = _switched_run(fr1_rpy_dir, 0.0)
-    assert off[jump].mean() > 5.0  # uncovered without the term
+    assert off[jump].mean() > max(4.0, 1.8 * nt[jump].mean())  # uncovered without the term
 
 
 @pytest.mark.slow

@@ -88,11 +88,13 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
 
     seq = TumSequence(sample_dir)
 
-    def run(offset_s, factor, depth_time=0.0):
+    def run(offset_s, factor, depth_time=0.0, coherent=0.0, odd_only=False):
         vo = VisualOdometry("fr1", OdometryConfig().replace(noise={"depth_offset_factor": factor},
                                                           sensor={"frame_clock": False,
-                                                                  "depth_time_factor": depth_time}))
-        steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.timestamps[i] + offset_s)
+                                                                  "depth_time_factor": depth_time,
+                                                                  "depth_time_coherent_factor": coherent}))
+        steps = [vo.register_frame(*seq.load(i), seq.timestamps[i],
+                                   depth_timestamp=seq.timestamps[i] + (offset_s if i % 2 or not odd_only else 0.0))
                  for i in range(4)]
         return steps[-1]
 
@@ -104,8 +106,15 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
     # the frame-level depth-time term (its basis grows with the offset) widens the reported one
     timed = run(0.02, 0.0, depth_time=0.324)
     assert timed.covariance[3:, 3:].trace() > 1.02 * off_ignored.covariance[3:, 3:].trace()
-    # ... and vanishes for depth images stamped with their colour images
-    np.testing.assert_allclose(run(0.0, 1.0, depth_time=0.324).covariance, base.covariance, rtol=1e-12, atol=1e-18)
+    # ... and so does its coherent form, the offsets' own effect at both frames together (by 23 % here)
+    coherent = run(0.02, 0.0, coherent=1.0)
+    assert coherent.covariance[3:, 3:].trace() > 1.05 * off_ignored.covariance[3:, 3:].trace()
+    # where only the current frame's depth image is off, the two forms are one: h_cur h_cur^T
+    np.testing.assert_allclose(run(0.02, 0.0, coherent=1.0, odd_only=True).covariance,
+                               run(0.02, 0.0, depth_time=1.0, odd_only=True).covariance, rtol=1e-12, atol=1e-18)
+    # ... and both vanish for depth images stamped with their colour images
+    np.testing.assert_allclose(run(0.0, 1.0, depth_time=0.324, coherent=1.0).covariance, base.covariance,
+                               rtol=1e-12, atol=1e-18)
 
 
 def test_gauss_hermite_nodes_integrate_the_normal_moments():
