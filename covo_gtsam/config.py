@@ -154,7 +154,8 @@ class SensorConfig:
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
     depth_time_coherent_factor: float = number(
         0.297, "the stamped colour-depth offsets' own effect, the pair's two frames together, times this (frame-level "
-        "term; 1: the depth images taken at their stamps, uncompensated)", "factor", "non-negative", maximum=100.0)
+        "term; 1: the depth images taken at their stamps, uncompensated; none with depth_time_compensation)", "factor",
+        "non-negative", maximum=100.0)
     depth_jump_factor: float = number(1.0, "the depth image read whole depth periods earlier or later than at the "
                                       "pair's other frame (its nearest depth image switched to a neighbour): this "
                                       "times that change (frame-level term, a prior; 1: the whole change)", "factor",

@@ -823,7 +823,10 @@ class VisualOdometry(DeprecatedStepAccess):
         h_ref = ref.depth_offset * depth_time_basis(G_ref, X_ref, twist_ref)
         h_cur = frame.depth_offset * depth_time_basis(G_cur, X_cur, velocity)
         bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)  # each frame's offset's error
-        bases["depth_time_coherent"] = np.outer(h_ref + h_cur, h_ref + h_cur)  # the offsets themselves
+        # the offsets' own effect, both frames together; none where the points were moved to their
+        # colour images' times by the stamped offsets (``depth_time_compensation``)
+        h = np.zeros(6) if self.config.sensor.depth_time_compensation else h_ref + h_cur
+        bases["depth_time_coherent"] = np.outer(h, h)
         # the depth images read whole periods apart (the nearest depth image switched to a neighbour):
         # as if the current frame's were read half the change later and the reference's half earlier
         jump = self._depth_jump(ref, frame)

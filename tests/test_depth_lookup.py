@@ -88,11 +88,12 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
 
     seq = TumSequence(sample_dir)
 
-    def run(offset_s, factor, depth_time=0.0, coherent=0.0, odd_only=False):
+    def run(offset_s, factor, depth_time=0.0, coherent=0.0, odd_only=False, compensated=False):
         vo = VisualOdometry("fr1", OdometryConfig().replace(noise={"depth_offset_factor": factor},
                                                           sensor={"frame_clock": False,
                                                                   "depth_time_factor": depth_time,
-                                                                  "depth_time_coherent_factor": coherent}))
+                                                                  "depth_time_coherent_factor": coherent,
+                                                                  "depth_time_compensation": compensated}))
         steps = [vo.register_frame(*seq.load(i), seq.timestamps[i],
                                    depth_timestamp=seq.timestamps[i] + (offset_s if i % 2 or not odd_only else 0.0))
                  for i in range(4)]
@@ -109,6 +110,11 @@ def test_a_colour_depth_offset_under_motion_widens_the_pair_covariance(sample_di
     # ... and so does its coherent form, the offsets' own effect at both frames together (by 23 % here)
     coherent = run(0.02, 0.0, coherent=1.0)
     assert coherent.covariance[3:, 3:].trace() > 1.05 * off_ignored.covariance[3:, 3:].trace()
+    # ... not where the points were moved by the stamped offsets: that effect is compensated
+    moved = run(0.02, 0.0, compensated=True)
+    assert not np.any(moved.error_bases["depth_time_coherent"])
+    np.testing.assert_allclose(run(0.02, 0.0, coherent=5.0, compensated=True).covariance, moved.covariance,
+                               rtol=1e-12, atol=1e-18)
     # where only the current frame's depth image is off, the two forms are one: h_cur h_cur^T
     np.testing.assert_allclose(run(0.02, 0.0, coherent=1.0, odd_only=True).covariance,
                                run(0.02, 0.0, depth_time=1.0, odd_only=True).covariance, rtol=1e-12, atol=1e-18)
