@@ -130,7 +130,8 @@ class SensorConfig:
     frame_clock: bool = flag(True, "learn the frame clock from the stamps and report poses between the stamps")
     clock_window: int = integer(60, "stamps the frame clock is fitted to", 20, unit="frames")
     depth_time_compensation: bool = flag(False, "move each point along its ray to its colour image's time "
-                                         "(depth images stamped apart from the colour images)")
+                                         "(depth images stamped apart from the colour images; the coherent colour-depth "
+                                         "term is then zero)")
     correlation_factor: float = number(1.0, "kappa: multiplies the per-point covariance, for errors shared by the "
                                        "points", "factor", minimum=MIN_SCALE, maximum=MAX_SCALE)
     frame_sigma_rot_deg: float = number(0.0559, "per-axis rotation error common to a pair, per frame interval "
