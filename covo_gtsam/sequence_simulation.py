@@ -109,6 +109,21 @@ class SequenceSimulationResult:
     #: what the run learnt without ground truth (:meth:`VisualOdometry.self_calibration`)
     self_calibration: dict | None = field(default=None, repr=False)
 
+    @property
+    def kept_consecutive(self) -> np.ndarray:
+        """Mask (N,) of the consecutive pairs (one frame interval, with a velocity) the integrity check
+        did not flag: the pairs a fit of the frame-level terms against the truth uses."""
+        return self.consecutive & ~self.flagged
+
+    def fit_terms(self):
+        """The maximum-likelihood fit of kappa, the frame term and every frame-level term against the
+        truth on :attr:`kept_consecutive` (:func:`~covo_gtsam.calibration.fit_sensor_terms`; needs
+        SciPy): a :class:`~covo_gtsam.calibration.SensorTerms`."""
+        from .calibration import fit_sensor_terms
+
+        m = self.kept_consecutive
+        return fit_sensor_terms(self.errors[m], self.covariances[m], bases={k: v[m] for k, v in self.bases.items()})
+
     def nees(self, good_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """NEES of translation and rotation (3 dof each) of the pairs (without bad ones by default)."""
         m = ~self.bad if good_only else np.ones(len(self.bad), bool)

@@ -23,7 +23,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from covo_gtsam.calibration import ERROR_TERMS, TwistChanges, fit_sensor_terms, latency_basis  # noqa: E402
+from covo_gtsam.calibration import ERROR_TERMS, TwistChanges, latency_basis  # noqa: E402
 from covo_gtsam.metrics import nees, se3_log  # noqa: E402
 from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_sequence  # noqa: E402
 
@@ -69,7 +69,7 @@ def delay_parts(seed: int, frames: int, speed: float) -> dict:
             history.add(q.capture_truth[n], twists[n - 1], twists[n], np.zeros((6, 6)), np.zeros((6, 6)))
         else:
             history.clear()
-    m = q.consecutive & ~q.flagged
+    m = q.kept_consecutive
     m[:TRUTH.sensor.twist_history + 2] = False  # the history's window filled
     est = q.errors[m] - q.stamp_errors[m]  # first order: the estimate's own error
     C = q.covariances[m][:, :3, :3]
@@ -100,12 +100,11 @@ def source_rows(seeds: range, frames: int) -> list[str]:
             base = dataclasses.replace(SIM, frames=frames, seed=seed, **{**DELAY_ONLY, "readout_s": SIM.readout_s,
                                                                          "stamp_latency_s": 0.0, **source})
             q = simulate_sequence(base, TRUTH)
-            m = q.consecutive & ~q.flagged
-            fit = fit_sensor_terms(q.errors[m], q.covariances[m], bases={k: v[m] for k, v in q.bases.items()})
+            fit = q.fit_terms()
             for speed in (SIM.max_angular_speed, *FASTER):
                 if speed != SIM.max_angular_speed:
                     q = simulate_sequence(dataclasses.replace(base, max_angular_speed=speed), TRUTH)
-                    m = q.consecutive & ~q.flagged
+                m = q.kept_consecutive
                 covs = fit.covariances(q.covariances[m], {k: v[m] for k, v in q.bases.items()})
                 per_speed.setdefault(speed, []).append((nees(q.errors[m, 3:], covs[:, 3:, 3:]).mean(),
                                                         nees(q.errors[m, :3], covs[:, :3, :3]).mean()))
@@ -129,13 +128,11 @@ def offset_rows(seeds: range, frames: int) -> list[str]:
             cfg = dataclasses.replace(SIM, frames=frames, seed=seed, max_angular_speed=speed,
                                       **{**DELAY_ONLY, "stamp_latency_s": 0.0, "depth_offset_s": OFFSETS})
             truth = TRUTH.replace(sensor={"rolling_shutter_s": 0.0})
-            q = simulate_sequence(cfg, truth)
-            m = q.consecutive & ~q.flagged
-            fit = fit_sensor_terms(q.errors[m], q.covariances[m], bases={k: v[m] for k, v in q.bases.items()})
+            fit = simulate_sequence(cfg, truth).fit_terms()
             coherent.append(fit.sigmas["depth_time_coherent"])
             factor.append(fit.sigmas["depth_time"])
             q = simulate_sequence(cfg, truth.replace(sensor={"depth_time_compensation": True}))
-            m = q.consecutive & ~q.flagged
+            m = q.kept_consecutive
             compensated.append((nees(q.errors[m, 3:], q.covariances[m][:, 3:, 3:]).mean(),
                                 nees(q.errors[m, :3], q.covariances[m][:, :3, :3]).mean()))
         rows.append(f"| {speed:g} | {mean_sd(coherent)} | {mean_sd(factor)} | {mean_sd([c[0] for c in compensated])} / "
@@ -229,8 +226,8 @@ def drift_cost_rows(seeds: range, frames: int) -> list[str]:
         cfg = dataclasses.replace(SIM, frames=frames, seed=seed, bad_frame_rate=0.0, stamp_latency_s=0.0)
         for window in (0, 10):
             q = simulate_sequence(cfg, TRUTH.replace(sensor={"depth_drift_pairs": window}))
-            m = q.consecutive & ~q.flagged
-            fit = fit_sensor_terms(q.errors[m], q.covariances[m], bases={k: v[m] for k, v in q.bases.items()})
+            m = q.kept_consecutive
+            fit = q.fit_terms()
             rec.setdefault(f"rms{window}", []).append(1e3 * np.sqrt(np.mean(np.sum(q.errors[m, 3:] ** 2, axis=1))))
             rec.setdefault(f"scale{window}", []).append(100 * fit.sigmas["depth_scale"])
     return [f"| {window} | {mean_sd(rec[f'rms{window}'])} | {mean_sd(rec[f'scale{window}'])} |" for window in (0, 10)]
@@ -279,8 +276,7 @@ def main() -> None:
                                        ("_own", cfg.stamp_latency_s, False)):
             q = simulate_sequence(dataclasses.replace(cfg, bad_frame_rate=0.0, stamp_latency_s=latency),
                                   TRUTH.replace(sensor={"rolling_shutter_look_ahead": ahead}))
-            m = q.consecutive & ~q.flagged
-            fit = fit_sensor_terms(q.errors[m], q.covariances[m], bases={k: v[m] for k, v in q.bases.items()})
+            fit = q.fit_terms()
             rec.setdefault("scale" + suffix, []).append(100 * fit.sigmas["depth_scale"])
             rec.setdefault("dtime" + suffix, []).append(fit.sigmas["depth_time"])
             rec.setdefault("dcoh" + suffix, []).append(fit.sigmas["depth_time_coherent"])
@@ -293,7 +289,7 @@ def main() -> None:
         # the terms fitted at this motion (stamps delayed), checked on the same sensor turning faster
         for speed in FASTER:
             q = simulate_sequence(dataclasses.replace(cfg, bad_frame_rate=0.0, max_angular_speed=speed), TRUTH)
-            m = q.consecutive & ~q.flagged
+            m = q.kept_consecutive
             covs = fit_delayed.covariances(q.covariances[m], {k: v[m] for k, v in q.bases.items()})
             nt, nr = nees(q.errors[m, 3:], covs[:, 3:, 3:]), nees(q.errors[m, :3], covs[:, :3, :3])
             rec.setdefault(f"fast_t{speed:g}", []).append(nt.mean())

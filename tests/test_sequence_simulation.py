@@ -6,7 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from covo_gtsam.calibration import ERROR_TERMS, fit_sensor_terms
+from covo_gtsam.calibration import ERROR_TERMS
 from covo_gtsam.metrics import chi2_quantile, relative_pose_tangent_errors
 from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_sequence
 
@@ -87,8 +87,7 @@ def test_fit_recovers_the_injected_depth_scale_error():
             r = simulate_sequence(SequenceSimulationConfig(frames=300, seed=seed, depth_scale_sigma=0.0005,
                                                            depth_offset_s=(0.0, 0.0), bad_frame_rate=0.0),
                                   TRUTH.replace(sensor={"rolling_shutter_look_ahead": ahead}))
-            m = r.consecutive & ~r.flagged
-            fit = fit_sensor_terms(r.errors[m], r.covariances[m], bases={k: v[m] for k, v in r.bases.items()})
+            fit = r.fit_terms()
             assert fit.sigmas["depth_scale"] == pytest.approx(0.0005, rel=0.2)
             if ahead:
                 assert fit.sigmas["rolling_shutter"] < 0.5
@@ -112,8 +111,7 @@ def test_fit_puts_true_colour_depth_offsets_on_the_coherent_term():
         r = simulate_sequence(SequenceSimulationConfig(frames=300, seed=seed, depth_scale_sigma=0.0005,
                                                        bad_frame_rate=0.0),
                               TRUTH.replace(sensor={"rolling_shutter_look_ahead": False}))
-        m = r.consecutive & ~r.flagged
-        fit = fit_sensor_terms(r.errors[m], r.covariances[m], bases={k: v[m] for k, v in r.bases.items()})
+        fit = r.fit_terms()
         assert fit.sigmas["depth_time_coherent"] == pytest.approx(1.0, rel=0.25)
         assert fit.sigmas["depth_time"] < 0.25
 
@@ -128,8 +126,7 @@ def test_fit_recovers_an_injected_stamp_latency():
         for latency in (0.01, 0.0):
             r = simulate_sequence(SequenceSimulationConfig(frames=300, seed=seed, depth_scale_sigma=0.0005,
                                                            stamp_latency_s=latency, bad_frame_rate=0.0), TRUTH)
-            m = r.consecutive & ~r.flagged
-            fit = fit_sensor_terms(r.errors[m], r.covariances[m], bases={k: v[m] for k, v in r.bases.items()})
+            fit = r.fit_terms()
             fitted[latency] = fit.sigmas["latency"]
         assert fitted[0.01] == pytest.approx(0.01, rel=0.1)
         assert fitted[0.0] < 0.002
@@ -144,7 +141,7 @@ def test_latency_basis_has_the_size_of_the_delays_error():
     trajectory's own motion, not against the formula that built it."""
     cfg = SequenceSimulationConfig(frames=200, seed=3, stamp_latency_s=0.01, period_s=1 / 30, **CLEAN)
     r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0}))
-    m = r.consecutive & ~r.flagged
+    m = r.kept_consecutive
     m[:TRUTH.sensor.twist_history + 2] = False  # the basis's history filled
     own = r.errors[m] - r.stamp_errors[m]
     n_own = np.mean(np.einsum("ni,nij,nj->n", own[:, :3], np.linalg.inv(r.covariances[m][:, :3, :3]), own[:, :3]))
@@ -191,7 +188,7 @@ def test_latency_basis_covers_the_delay_when_the_turn_axis_wanders():
         cfg = SequenceSimulationConfig(frames=300, seed=seed, stamp_latency_s=0.01, period_s=1 / 30,
                                        max_angular_speed=6.0, **CLEAN)
         r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0, "latency_look_ahead": False}))
-        m = r.consecutive & ~r.flagged
+        m = r.kept_consecutive
         m[:TRUTH.sensor.twist_history + 2] = False
         C = r.covariances[m][:, :3, :3]
         delay_nees = nees(r.stamp_errors[m, :3], 0.01**2 * r.bases["latency"][m][:, :3, :3] + C).mean()
@@ -211,7 +208,7 @@ def test_the_change_across_the_pair_gives_the_delays_part_its_size_and_direction
         cfg = SequenceSimulationConfig(frames=300, seed=seed, stamp_latency_s=0.01, period_s=1 / 30,
                                        max_angular_speed=6.0, **CLEAN)
         r = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_s": 0.0}))
-        m = r.consecutive & ~r.flagged
+        m = r.kept_consecutive
         m[:TRUTH.sensor.twist_history + 2] = False
         C, B, d = r.covariances[m][:, :3, :3], 0.01**2 * r.bases["latency"][m][:, :3, :3], r.stamp_errors[m, :3]
         assert 0.85 < np.mean(np.sum(d**2, axis=1)) / np.mean(np.trace(B, axis1=1, axis2=2)) < 1.15, seed
@@ -329,7 +326,7 @@ def test_the_next_twist_takes_most_of_the_rolling_shutters_error_out_of_the_pose
         for on in (False, True):
             r = simulate_sequence(cfg, TRUTH.replace(noise={"pixel_sigma": 0.1, "depth_sigma_scale": 0.1},
                                                      sensor={"rolling_shutter_look_ahead": on}))
-            e = r.errors[r.consecutive & ~r.flagged]
+            e = r.errors[r.kept_consecutive]
             rms.append([np.sqrt(np.mean(np.sum(e[:, b] ** 2, axis=1))) for b in (slice(0, 3), slice(3, 6))])
         (rot_off, trans_off), (rot_on, trans_on) = rms
         assert rot_on < 0.5 * rot_off, seed
@@ -348,15 +345,14 @@ def test_a_pose_the_next_twist_has_not_moved_carries_the_rolling_shutters_whole_
     for seed in (0, 1):
         cfg = SequenceSimulationConfig(frames=300, seed=seed, period_s=1 / 30, **{**CLEAN, "readout_s": 0.025})
         r = simulate_sequence(cfg, TRUTH)
-        m = r.consecutive & ~r.flagged
-        factor = fit_sensor_terms(r.errors[m], r.covariances[m],
-                                  bases={k: v[m] for k, v in r.bases.items()}).sigmas["rolling_shutter"]
+        m = r.kept_consecutive
+        factor = r.fit_terms().sigmas["rolling_shutter"]
         assert 0.1 < factor < 0.5, seed
         for ahead, factor_used, low, high in ((True, factor, 2.4, 3.7), (False, factor, 2.4, 3.7),
                                               (False, 0.0, 3.7, np.inf)):
             q = simulate_sequence(cfg, TRUTH.replace(sensor={"rolling_shutter_factor": factor_used,
                                                              "rolling_shutter_look_ahead": ahead}))
-            m = q.consecutive & ~q.flagged
+            m = q.kept_consecutive
             nt = nees(q.errors[m, 3:], q.covariances[m][:, 3:, 3:]).mean()
             nr = nees(q.errors[m, :3], q.covariances[m][:, :3, :3]).mean()
             assert low < nt < high and low < nr < high, (seed, ahead, factor_used, nt, nr)
