@@ -134,8 +134,9 @@ def test_shared_desk_frames_are_not_overconfident(fr1_desk_dir, tmp_path):
     while few changes are known (docs/derivation.md, "The history's length"). The pairs must not be
     overconfident: the mean of 8 chi2(3) values of a consistent covariance lies within chi2(24)/8's
     95 % band, 1.55 to 4.92, and neither ANEES may lie above it. The rotation's lies within it; the
-    translation's lies below it (1.16, the rolling-shutter term taking two thirds of its degrees of
-    freedom; README, "Known limits"), and must stay within a factor of two of the band. It read
+    translation's lies below it (0.95, the rolling-shutter term taking most of its degrees of
+    freedom; docs/results.md, "Known limits of the covariance"), and must stay within a factor of
+    two of the band. It read
     2.22, inside the band, only while the first pair's readout basis nearly cancelled and that
     pair's NEES was 6.8."""
     out = tmp_path / "desk"
