@@ -166,7 +166,8 @@ class SensorConfig:
                                 "term; 0 for consecutive pairs)", "factor", "non-negative", maximum=100.0)
     depth_drift_pairs: int = integer(10, "recent pairs whose depth-free estimates' disagreement along the depth-scale "
                                      "response gives the depth's drift, which each pair's translation is corrected by "
-                                     "(0: off; 1 counts as 2; not in keyframe mode)", 0, 10000, unit="pairs")
+                                     "(from a run's second pair on, over the pairs so far while fewer; 0: off; 1 "
+                                     "counts as 2; not in keyframe mode)", 0, 10000, unit="pairs")
     twist_history: int = integer(10, "recent changes of the camera's twist the latency and rolling-shutter terms "
                                  "are taken from", 1, 10000, unit="pairs")
     latency_look_ahead: bool = flag(True, "settle a consecutive pair's latency term one frame late, from the change "

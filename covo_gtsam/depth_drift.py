@@ -42,9 +42,11 @@ def drift_along(delta: np.ndarray, b: np.ndarray, covariance: np.ndarray) -> np.
 class DepthDrift:
     """The mean of the last ``pairs`` drift vectors (:func:`drift_along`), each per frame interval:
     the correction ``k * mean`` of a pair over ``k`` intervals (right perturbation, the rotation 0)
-    and its covariance ``k^2 S / n`` (``S`` the window's sample covariance, ``n = pairs``). Nothing
-    until the window is full: the mean of a few vectors is mostly their noise, and so would be the
-    spread it is judged by. ``pairs`` 0 turns it off; a window needs at least 2 (1 counts as 2)."""
+    and its covariance ``k^2 S / n`` (``S`` the window's sample covariance, ``n`` the vectors it
+    holds, at most ``pairs``). From the second vector on: while the window fills, the mean of the
+    vectors so far, with its larger standard error (a run's first pairs would otherwise carry the
+    drift uncorrected and unreported; docs/derivation.md, "The depth's drift"). ``pairs`` 0 turns
+    it off; a window needs at least 2 (1 counts as 2)."""
 
     def __init__(self, pairs: int) -> None:
         self._window: deque[np.ndarray] = deque(maxlen=max(int(pairs), 2))
@@ -61,9 +63,9 @@ class DepthDrift:
 
     def correction(self, intervals: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """``(xi, C)``: the move (6,) of a pair over ``intervals`` frame intervals, ``T Exp(xi)``, and
-        the covariance (6, 6) of that estimate; zeros until the window is full."""
+        the covariance (6, 6) of that estimate; zeros while the window holds fewer than 2 vectors."""
         n = len(self._window)
-        if not self.enabled or n < self._window.maxlen:
+        if not self.enabled or n < 2:
             return np.zeros(6), np.zeros((6, 6))
         V = np.asarray(self._window)
         k = max(intervals, 1)

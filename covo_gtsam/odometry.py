@@ -926,7 +926,7 @@ class VisualOdometry(DeprecatedStepAccess):
         differs from the colour clock's the colour-depth offset drifts by the difference per frame,
         and a switch comes wherever the offset passes half a period; and the RMS of the depth-drift
         corrections per frame interval (m; None when none was applied: the correction off, keyframe
-        mode, or fewer pairs than its window)."""
+        mode, or fewer than two kept pairs)."""
         offsets = self._placed_offsets
         return {"frame_period_s": self._clock.period_s,
                 "stamp_jitter_s": float(np.std(offsets)) if len(offsets) > 2 else None,

@@ -60,14 +60,18 @@ def test_drift_along_moves_the_3d3d_estimate_back_by_the_current_frames_depth_sc
     assert np.linalg.norm(v) < 1e-4
 
 
-def test_depth_drift_waits_for_a_full_window_and_scales_with_the_intervals():
+def test_depth_drift_starts_from_the_second_vector_and_scales_with_the_intervals():
     drift = DepthDrift(4)
     step = np.array([0, 0, 0, 0.0, 0.0, 1e-3])
-    for _ in range(3):
-        drift.add(step)
-        assert not np.any(drift.correction()[0])  # the mean of a few vectors is mostly their noise
-    drift.add(2 * step, intervals=2)  # a pair over two intervals: per interval the same
-    xi, C = drift.correction(3)
+    drift.add(step)
+    assert not np.any(drift.correction()[0])  # one vector has no spread to judge its mean by
+    drift.add(3 * step)
+    xi, C = drift.correction()  # the window not yet full: the mean so far, its spread / 2
+    np.testing.assert_allclose(xi, 2 * step)
+    np.testing.assert_allclose(C[5, 5], np.var([1e-3, 3e-3], ddof=1) / 2)
+    for _ in range(4):
+        drift.add(2 * step, intervals=2)  # a pair over two intervals: per interval the same
+    xi, C = drift.correction(3)  # the full window holds the last 4
     np.testing.assert_allclose(xi, 3 * step)
     np.testing.assert_allclose(C, 0.0, atol=1e-20)
     drift.clear()
@@ -92,6 +96,24 @@ def test_depth_drift_covariance_is_the_spread_of_the_window_mean():
         means.append(xi)
         reported.append(np.diag(C))
     np.testing.assert_allclose(np.var(means, axis=0)[3:], np.mean(reported, axis=0)[3:], rtol=0.1)
+
+
+@pytest.mark.parametrize("held", [2, 3, 5])
+def test_a_filling_windows_covariance_is_the_spread_of_its_mean(held):
+    """The same for a window of 10 that holds only ``held`` vectors yet (a run's first pairs): the
+    mean of fewer vectors spreads more, and the covariance reported says by as much."""
+    rng = np.random.default_rng(2)
+    sd = np.array([0, 0, 0, 1e-3, 2e-3, 3e-3])
+    means, reported = [], []
+    for _ in range(6000):
+        drift = DepthDrift(10)
+        for v in rng.normal(size=(held, 6)) * sd:
+            drift.add(v)
+        xi, C = drift.correction()
+        means.append(xi)
+        reported.append(np.diag(C))
+    np.testing.assert_allclose(np.var(means, axis=0)[3:], sd[3:] ** 2 / held, rtol=0.1)
+    np.testing.assert_allclose(np.mean(reported, axis=0)[3:], sd[3:] ** 2 / held, rtol=0.1)
 
 
 @pytest.mark.slow
@@ -122,9 +144,10 @@ def test_the_drift_correction_shortens_fr1_rpys_chains(fr1_rpy_dir):
 
 
 def test_the_odometry_moves_the_translation_and_adds_the_estimates_covariance(sample_dir):
-    """With and without the correction the runs agree until the window is full; the first pair
-    corrected keeps its rotation, moves its translation, and its covariance grows in the
-    translation block only (positive semidefinite, nonzero). The latency term's look-ahead is off:
+    """With and without the correction the runs agree on the first pair; the second, the first
+    corrected (the window then holds two pairs' vectors), keeps its rotation, moves its
+    translation, and its covariance grows in the translation block only (positive semidefinite,
+    nonzero). The latency term's look-ahead is off:
     the next pair, solved from a moved prediction, would settle the two runs' latency terms apart."""
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.odometry import VisualOdometry
@@ -138,8 +161,8 @@ def test_the_odometry_moves_the_translation_and_adds_the_estimates_covariance(sa
         runs[window] = [vo.register_frame(c, d, t, depth_timestamp=dt) for c, d, t, dt in frames]
     off, on = runs[0], runs[5]
     tracked = [i for i, s in enumerate(off) if s.has_relative_pose]
-    first = tracked[4]  # the fifth pair fills the window
-    for i in tracked[:4]:
+    first = tracked[1]  # the second pair's vector makes two in the window
+    for i in tracked[:1]:
         np.testing.assert_array_equal(on[i].relative.matrix(), off[i].relative.matrix())
         np.testing.assert_array_equal(on[i].covariance, off[i].covariance)
     a, b = on[first], off[first]
