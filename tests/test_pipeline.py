@@ -273,6 +273,7 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     calibration.json and prints configuration lines that a config file accepts."""
     pytest.importorskip("scipy")
     from covo_gtsam.calibration import DEFAULT_TERMS
+    from covo_gtsam.chi2 import anees_band
     from covo_gtsam.odometry import OdometryConfig
 
     out = tmp_path / "cal"
@@ -282,9 +283,10 @@ def test_calibrate_command_on_sample(sample_dir, tmp_path, capsys):
     # 39 consecutive pairs, less the 19 that touch the first 20 frames (not yet placed by the frame
     # clock) and those the integrity check flagged
     assert 39 - 19 - run["flagged_pairs"] <= s["pairs"] <= 20
-    # the per-point model alone is too confident on real data (ANEES well above 3); the fit inflates
-    # it, here mostly through the frame term
-    assert min(s["per_point_model_anees"]) > 6 and 0.3 < s["correlation_factor"] < 3
+    # the per-point model alone is too confident on real data: both ANEES above the 95 % band of a
+    # consistent covariance over these pairs (5.49 / 14.86 against 4.17 for 20 pairs); the fit
+    # inflates it, here mostly through the frame term
+    assert min(s["per_point_model_anees"]) > anees_band(s["pairs"])[1] and 0.3 < s["correlation_factor"] < 3
     # (the translation frame term may fit 0, as on the shared frames, where the depth terms take its place)
     assert 0 < s["frame_sigma_rot_deg"] < 1 and 0 <= s["frame_sigma_trans_m"] < 0.01
     printed = capsys.readouterr().out.splitlines()
