@@ -134,7 +134,7 @@ def test_shared_desk_frames_are_not_overconfident(fr1_desk_dir, tmp_path):
     while few changes are known (docs/derivation.md, "The history's length"). The pairs must not be
     overconfident: the mean of 8 chi2(3) values of a consistent covariance lies within chi2(24)/8's
     95 % band, 1.55 to 4.92, and neither ANEES may lie above it. The rotation's lies within it; the
-    translation's lies below it (0.95, the rolling-shutter term taking most of its degrees of
+    translation's lies below it (0.90, the rolling-shutter term taking most of its degrees of
     freedom; docs/results.md, "Known limits of the covariance"), and must stay within a factor of
     two of the band. It read
     2.22, inside the band, only while the first pair's readout basis nearly cancelled and that

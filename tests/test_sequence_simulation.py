@@ -294,7 +294,7 @@ def _chain_rms(r, w: int = 30) -> float:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_depth_drift_correction_removes_an_injected_drift(seed):
     """Each frame's depths scaled by 1 + 1 % sin(2 pi t / 3 s): the 30-pair chains drift by 13 mm
-    RMS and their pairs' ANEES is 6.8; the correction takes them to 4-5 mm and 3.3. Without a drift
+    RMS and their pairs' ANEES is 6.8; the correction takes them to 4-5 mm and 3.0. Without a drift
     it costs little (chains 1.7 -> 1.9 mm)."""
     rms, anees, reported = {}, {}, {}
     for amplitude in (0.0, 0.01):
