@@ -18,8 +18,7 @@ def test_real_frames_stamped_as_synchronised_keep_a_consistent_covariance(fr1_rp
     2.9 %)."""
     from covo_gtsam.chi2 import CHI2_3_975
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.evaluation import ground_truth_lookup, reference_covariances, relative_ground_truth
-    from covo_gtsam.metrics import nees, relative_pose_tangent_errors
+    from covo_gtsam.evaluation import evaluate_run
     from covo_gtsam.odometry import VisualOdometry
 
     seq = TumSequence(fr1_rpy_dir)
@@ -33,44 +32,33 @@ def test_real_frames_stamped_as_synchronised_keep_a_consistent_covariance(fr1_rp
     calibration = vo.self_calibration()
     assert calibration["depth_frame_period_s"] is None and calibration["depth_period_jumps"] == 0
 
-    lookup = ground_truth_lookup(seq)
-    kept = [s for s in posed if s.ref_timestamp in lookup and s.timestamp in lookup]
-    T_est, T_true, covs = relative_ground_truth(kept, lookup)
-    covs = covs + reference_covariances(seq.gt_samples)([s.ref_timestamp for s in kept], [s.timestamp for s in kept])
-    err = relative_pose_tangent_errors(T_est, T_true)
-    for block in (slice(0, 3), slice(3, 6)):
-        n = nees(err[:, block], covs[:, block, block])
+    ev = evaluate_run(steps, seq, 1.0)  # as metrics.json: against the reference, its jitter added
+    for n in (np.asarray(ev.nees_translation), np.asarray(ev.nees_rotation)):
+        assert len(n) >= 235
         assert 1.5 <= n.mean() <= 3.5
         assert np.mean(n > CHI2_3_975) <= 0.05
         assert n.max() < 100
 
 
-
 def _short_runs(fr1_rpy_dir, synchronised: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """fr1_rpy's 240 frames as 15 runs of 16 frames each (depth images stamped at their colour
     images' times if ``synchronised``, else as stamped): translation and rotation NEES of every
-    pair against the reference (with its jitter), and each pair's place in its run (1: the first)."""
+    pair as ``metrics.json`` has them, and each pair's place in its run (1: the first)."""
     from covo_gtsam.datasets.tum import TumSequence
-    from covo_gtsam.evaluation import ground_truth_lookup, reference_covariances, relative_ground_truth
-    from covo_gtsam.metrics import nees, relative_pose_tangent_errors
+    from covo_gtsam.evaluation import evaluate_run
     from covo_gtsam.odometry import VisualOdometry
 
     seq = TumSequence(fr1_rpy_dir)
-    lookup, jitter = ground_truth_lookup(seq), reference_covariances(seq.gt_samples)
-    nt, nr, position = [], [], []
+    nt, nr = [], []
     for start in range(0, 240, 16):
         vo = VisualOdometry(seq.camera_name)
         steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.timestamps[i]
                                    if synchronised else seq.depth_timestamps[i]) for i in range(start, start + 16)]
-        kept = [(n, s) for n, s in enumerate(steps) if s.has_relative_pose and s.ref_timestamp in lookup
-                and s.timestamp in lookup]
-        T_est, T_true, covs = relative_ground_truth([s for _, s in kept], lookup)
-        covs = covs + jitter([s.ref_timestamp for _, s in kept], [s.timestamp for _, s in kept])
-        err = relative_pose_tangent_errors(T_est, T_true)
-        nt.append(nees(err[:, 3:], covs[:, 3:, 3:]))
-        nr.append(nees(err[:, :3], covs[:, :3, :3]))
-        position += [n for n, _ in kept]
-    return np.concatenate(nt), np.concatenate(nr), np.array(position)
+        ev = evaluate_run(steps, seq, 1.0)
+        assert not ev.lost and len(ev.nees_translation) == 15  # every pair posed, in order
+        nt.append(ev.nees_translation)
+        nr.append(ev.nees_rotation)
+    return np.concatenate(nt), np.concatenate(nr), np.tile(np.arange(1, 16), 15)
 
 
 @pytest.mark.slow
