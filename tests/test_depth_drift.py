@@ -69,6 +69,9 @@ def test_depth_drift_starts_from_the_second_vector_and_scales_with_the_intervals
     xi, C = drift.correction()  # the window not yet full: the mean so far, its spread / 2
     np.testing.assert_allclose(xi, 2 * step)
     np.testing.assert_allclose(C[5, 5], np.var([1e-3, 3e-3], ddof=1) / 2)
+    xi3, C3 = drift.correction(3)  # over 3 intervals: 3 times the move, 9 times its covariance
+    np.testing.assert_allclose(xi3, 3 * xi)
+    np.testing.assert_allclose(C3, 9 * C)
     for _ in range(4):
         drift.add(2 * step, intervals=2)  # a pair over two intervals: per interval the same
     xi, C = drift.correction(3)  # the full window holds the last 4
