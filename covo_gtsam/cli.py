@@ -93,6 +93,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         why = ("groundtruth.txt is not a file" if gt.is_dir() else "groundtruth.txt has no samples"
                if gt.is_file() else "no ground truth")
         print(f"{seq.name}: {why}; accuracy and consistency metrics skipped")
+    if not args.config and not _is_fr1(seq, told=bool(args.camera)):  # the default terms are a freiburg1 Kinect's
+        print(f"note: the covariance's sensor terms are the defaults, fitted on the freiburg1 Kinect of TUM RGB-D "
+              f"(this camera: {seq.camera.name}); check them on this camera with covo calibrate on a sequence with "
+              "ground truth (README, \"Known limits of the covariance\")")
     if result.plot_files is None:
         _plots_missing()
     print(f"results in {result.out_dir}")
@@ -107,6 +111,19 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"(first lost frame: {first}); relative.txt is empty; see metrics.json", file=sys.stderr)
         return EXIT_NOTHING_TRACKED
     return 0
+
+
+def _is_fr1(seq, told: bool) -> bool:
+    """Whether ``seq`` comes from the freiburg1 Kinect: its camera has the freiburg1 preset's
+    intrinsics (whatever its name), or, unless ``--camera`` ``told`` another, its folder or bag is
+    named for freiburg1 (a TUM bag's camera info carries other intrinsics)."""
+    from dataclasses import replace
+
+    from .camera import PRESETS
+    from .datasets.tum import camera_name_from_path
+
+    return (replace(seq.camera, name=PRESETS["fr1"].name) == PRESETS["fr1"]
+            or (not told and camera_name_from_path(getattr(seq, "path", "")) == "fr1"))
 
 
 def _load_config(args: argparse.Namespace):

@@ -201,6 +201,38 @@ def test_cli_simulate_depth_range_reversed(run_cli, tmp_path):
 
 # -- help and version ----------------------------------------------------------------------------
 
+def test_run_notes_when_the_default_sensor_terms_belong_to_another_camera(run_cli, tmp_path):
+    """The default sensor terms were fitted on the freiburg1 Kinect: a run with another camera and no
+    ``--config`` says so (one line on stdout, the run as usual); the fr1 camera, or a configuration
+    file, does not get the note."""
+    note = "note: the covariance's sensor terms are the defaults, fitted on the freiburg1 Kinect"
+    base = ["run", str(SAMPLE_DIR), "--max-frames", "4", "--no-plots", "--quiet"]
+    other = run_cli([*base, "--out", str(tmp_path / "fr3"), "--camera", "fr3"])
+    assert other.returncode == 0 and note in other.stdout and "(this camera: fr3)" in other.stdout
+    same = run_cli([*base, "--out", str(tmp_path / "fr1")])  # the sample's folder names freiburg1
+    assert same.returncode == 0 and note not in same.stdout
+    (tmp_path / "c.toml").write_text("[sensor]\nlatency_sigma_s = 0.005\n")
+    told = run_cli([*base, "--out", str(tmp_path / "cfg"), "--camera", "fr3", "--config", str(tmp_path / "c.toml")])
+    assert told.returncode == 0 and note not in told.stdout
+
+
+def test_the_freiburg1_kinect_is_known_by_its_intrinsics_or_its_bags_name():
+    """A TUM bag's camera info carries the ROS default intrinsics (525 px), not the freiburg1
+    calibration: its name tells the sensor, unless ``--camera`` told another camera."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from covo_gtsam.camera import PRESETS, Camera
+
+    ros_default = Camera(525.0, 525.0, 319.5, 239.5, name="openni_rgb_optical_frame")
+    bag = SimpleNamespace(camera=ros_default, path=Path("rgbd_dataset_freiburg1_desk.bag"))
+    assert cli._is_fr1(bag, told=False) and not cli._is_fr1(bag, told=True)
+    renamed = SimpleNamespace(camera=replace(PRESETS["fr1"], name="kinect"), path=Path("x"))
+    assert cli._is_fr1(renamed, told=True)  # the preset's intrinsics under another name
+    fr3 = SimpleNamespace(camera=PRESETS["fr3"], path=Path("rgbd_dataset_freiburg3_teddy"))
+    assert not cli._is_fr1(fr3, told=False)
+
+
 def test_cli_help_explains_conventions(run_cli):
     for args in (["--help"], ["run", "--help"], ["simulate", "--help"], ["analyze-noise", "--help"]):
         proc = run_cli(args)
