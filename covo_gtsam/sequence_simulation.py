@@ -115,6 +115,11 @@ class SequenceSimulationResult:
         did not flag: the pairs a fit of the frame-level terms against the truth uses."""
         return self.consecutive & ~self.flagged
 
+    def _kept_bases(self) -> dict[str, np.ndarray]:
+        """Each frame-level term's bases (M, 6, 6) of the :attr:`kept_consecutive` pairs."""
+        m = self.kept_consecutive
+        return {k: v[m] for k, v in self.bases.items()}
+
     def fit_terms(self):
         """The maximum-likelihood fit of kappa, the frame term and every frame-level term against the
         truth on :attr:`kept_consecutive` (:func:`~covo_gtsam.calibration.fit_sensor_terms`; needs
@@ -122,7 +127,12 @@ class SequenceSimulationResult:
         from .calibration import fit_sensor_terms
 
         m = self.kept_consecutive
-        return fit_sensor_terms(self.errors[m], self.covariances[m], bases={k: v[m] for k, v in self.bases.items()})
+        return fit_sensor_terms(self.errors[m], self.covariances[m], bases=self._kept_bases())
+
+    def kept_covariances(self, terms) -> np.ndarray:
+        """The covariances (M, 6, 6) of the :attr:`kept_consecutive` pairs under fitted sensor terms
+        (a :class:`~covo_gtsam.calibration.SensorTerms`, e.g. :meth:`fit_terms` of another run)."""
+        return terms.covariances(self.covariances[self.kept_consecutive], self._kept_bases())
 
     def nees(self, good_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """NEES of translation and rotation (3 dof each) of the pairs (without bad ones by default)."""

@@ -105,7 +105,7 @@ def source_rows(seeds: range, frames: int) -> list[str]:
                 if speed != SIM.max_angular_speed:
                     q = simulate_sequence(dataclasses.replace(base, max_angular_speed=speed), TRUTH)
                 m = q.kept_consecutive
-                covs = fit.covariances(q.covariances[m], {k: v[m] for k, v in q.bases.items()})
+                covs = q.kept_covariances(fit)
                 per_speed.setdefault(speed, []).append((nees(q.errors[m, 3:], covs[:, 3:, 3:]).mean(),
                                                         nees(q.errors[m, :3], covs[:, :3, :3]).mean()))
         rows.append(f"| {label} | " + " | ".join(
@@ -290,7 +290,7 @@ def main() -> None:
         for speed in FASTER:
             q = simulate_sequence(dataclasses.replace(cfg, bad_frame_rate=0.0, max_angular_speed=speed), TRUTH)
             m = q.kept_consecutive
-            covs = fit_delayed.covariances(q.covariances[m], {k: v[m] for k, v in q.bases.items()})
+            covs = q.kept_covariances(fit_delayed)
             nt, nr = nees(q.errors[m, 3:], covs[:, 3:, 3:]), nees(q.errors[m, :3], covs[:, :3, :3])
             rec.setdefault(f"fast_t{speed:g}", []).append(nt.mean())
             rec.setdefault(f"fast_r{speed:g}", []).append(nr.mean())

@@ -345,7 +345,6 @@ def test_a_pose_the_next_twist_has_not_moved_carries_the_rolling_shutters_whole_
     for seed in (0, 1):
         cfg = SequenceSimulationConfig(frames=300, seed=seed, period_s=1 / 30, **{**CLEAN, "readout_s": 0.025})
         r = simulate_sequence(cfg, TRUTH)
-        m = r.kept_consecutive
         factor = r.fit_terms().sigmas["rolling_shutter"]
         assert 0.1 < factor < 0.5, seed
         for ahead, factor_used, low, high in ((True, factor, 2.4, 3.7), (False, factor, 2.4, 3.7),
