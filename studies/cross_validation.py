@@ -30,6 +30,7 @@ from covo_gtsam.calibration import (  # noqa: E402
     ERROR_TERMS,
     PRIOR_TERMS,
     fit_sensor_terms,
+    sensor_covariance,
 )
 from covo_gtsam.camera import Camera  # noqa: E402
 from covo_gtsam.config import OdometryConfig  # noqa: E402
@@ -566,7 +567,51 @@ def speed_term_table(data: Path) -> list[str]:
         cells = [f"{nr[m].mean():.2f} ({m.sum()})" for m in ((speed >= lo) & (speed < hi)
                                                             for lo, hi in zip(edges[:-1], edges[1:]))]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return lines + [""] + twist_change_lines(rpy)
+    return lines + [""] + twist_change_lines(rpy) + frame_term_lines(rpy)
+
+
+def frame_term_lines(p: dict) -> list[str]:
+    """The rotation frame term fitted by maximum likelihood (every other term at its default) on groups of
+    fr1_rpy's consecutive pairs: blocks of 60 pairs, and thirds by the pair's angular acceleration, true
+    or as the run can estimate it (from the pair's own twist and the one before, or across the pair from
+    the twists before and after it, one frame later)."""
+    s = OdometryConfig().sensor
+    k = np.flatnonzero(p["fit_ok"] & (np.r_[-1, p["end"][:-1]] == p["end"] - 1))
+    k = k[(k >= 1) & (k < len(p["end"]) - 1)]
+    others = sensor_covariance(np.zeros_like(p["cov"]), 0.0, 0.0, s.frame_sigma_trans_m, 1, p["bases"],
+                               s.term_sigmas()) + p["fixed"]
+    dt = p["t_cur"] - p["t_ref"]
+    accel = {"true": true_motion(p["T_true"], p["t_ref"], p["t_cur"])[1],
+             "estimated from the pair's own twist and the one before": true_motion(p["T_est"], p["t_ref"],
+                                                                                  p["t_cur"])[1]}
+    w_est = se3_log(p["T_est"])[:, :3] / dt[:, None]
+    across = np.full(len(dt), np.nan)
+    across[k] = np.linalg.norm(w_est[k + 1] - w_est[k - 1], axis=1) / (dt[k - 1] + dt[k + 1])
+    accel["estimated across the pair, from the twists before and after it"] = across
+
+    def frame_deg(m: np.ndarray) -> str:
+        fit = fit_sensor_terms(p["err"][m], s.correlation_factor * p["cov"][m], False, fixed=others[m])
+        return f"{fit.frame_sigma_rot_deg:.3f}"
+
+    lines = ["## Where the frame term's need lies", "",
+             "The rotation frame term (deg per axis and frame interval; the default "
+             f"{s.frame_sigma_rot_deg:.3f}, fitted on frames 1-119) fitted by maximum likelihood on groups of "
+             "fr1_rpy's consecutive pairs, every other term at its default: blocks of 60 pairs with the RMS of "
+             "their true angular acceleration, and thirds of the pairs by their angular acceleration, true or "
+             "as the run can estimate it. A frame term that followed the run's motion would grow with the "
+             "blocks' acceleration or with the run's own estimates of it.", "",
+             "| pairs | true angular acceleration, RMS (rad/s^2) | frame term (deg) |", "|---|---|---|"]
+    for a in range(0, len(k), 60):
+        m = k[a:a + 60]
+        lines.append(f"| frames {p['end'][m[0]]}-{p['end'][m[-1]]} | {np.sqrt(np.mean(accel['true'][m] ** 2)):.1f} | "
+                     f"{frame_deg(m)} |")
+    lines += ["", "| thirds by the angular acceleration | lowest | middle | highest |", "|---|---|---|---|"]
+    for label, a in accel.items():
+        edges = np.quantile(a[k], [0.0, 1 / 3, 2 / 3, 1.0])
+        thirds = [k[(a[k] >= lo) & (a[k] <= hi)] for lo, hi in zip(edges[:-1], edges[1:])]
+        lines.append(f"| {label} | " + " | ".join(f"{frame_deg(m)} ({edges[i]:.1f}-{edges[i + 1]:.1f} rad/s^2)"
+                                                  for i, m in enumerate(thirds)) + " |")
+    return lines + [""]
 
 
 def twist_change_lines(p: dict) -> list[str]:
