@@ -578,15 +578,18 @@ def frame_term_lines(p: dict) -> list[str]:
     s = OdometryConfig().sensor
     k = np.flatnonzero(p["fit_ok"] & (np.r_[-1, p["end"][:-1]] == p["end"] - 1))
     k = k[(k >= 1) & (k < len(p["end"]) - 1)]
+    # the prior terms are in p["fixed"] already
+    sigmas = {name: sigma for name, sigma in s.term_sigmas().items() if name not in PRIOR_TERMS}
     others = sensor_covariance(np.zeros_like(p["cov"]), 0.0, 0.0, s.frame_sigma_trans_m, 1, p["bases"],
-                               s.term_sigmas()) + p["fixed"]
+                               sigmas) + p["fixed"]
     dt = p["t_cur"] - p["t_ref"]
     accel = {"true": true_motion(p["T_true"], p["t_ref"], p["t_cur"])[1],
              "estimated from the pair's own twist and the one before": true_motion(p["T_est"], p["t_ref"],
                                                                                   p["t_cur"])[1]}
     w_est = se3_log(p["T_est"])[:, :3] / dt[:, None]
-    across = np.full(len(dt), np.nan)
-    across[k] = np.linalg.norm(w_est[k + 1] - w_est[k - 1], axis=1) / (dt[k - 1] + dt[k + 1])
+    across = np.full(len(dt), np.nan)  # where the pair after follows this one too
+    after = k[p["end"][k + 1] == p["end"][k] + 1]
+    across[after] = np.linalg.norm(w_est[after + 1] - w_est[after - 1], axis=1) / (dt[after - 1] + dt[after + 1])
     accel["estimated across the pair, from the twists before and after it"] = across
 
     def frame_deg(m: np.ndarray) -> str:
@@ -595,11 +598,12 @@ def frame_term_lines(p: dict) -> list[str]:
 
     lines = ["## Where the frame term's need lies", "",
              "The rotation frame term (deg per axis and frame interval; the default "
-             f"{s.frame_sigma_rot_deg:.3f}, fitted on frames 1-119) fitted by maximum likelihood on groups of "
-             "fr1_rpy's consecutive pairs, every other term at its default: blocks of 60 pairs with the RMS of "
-             "their true angular acceleration, and thirds of the pairs by their angular acceleration, true or "
-             "as the run can estimate it. A frame term that followed the run's motion would grow with the "
-             "blocks' acceleration or with the run's own estimates of it.", "",
+             f"{s.frame_sigma_rot_deg:.3f}, fitted on frames 0-119) fitted by maximum likelihood on groups of "
+             "fr1_rpy's consecutive pairs, every other term at its default (the translation's frame term fitted "
+             "along): blocks of up to 60 pairs with the RMS of their true angular acceleration, and thirds of the "
+             "pairs by their angular acceleration, true (from the reference, whose jitter is in the pairs' "
+             "errors too) or as the run can estimate it. A frame term that followed the run's motion would grow "
+             "with the blocks' acceleration or with the run's own estimates of it.", "",
              "| pairs | true angular acceleration, RMS (rad/s^2) | frame term (deg) |", "|---|---|---|"]
     for a in range(0, len(k), 60):
         m = k[a:a + 60]
@@ -607,8 +611,10 @@ def frame_term_lines(p: dict) -> list[str]:
                      f"{frame_deg(m)} |")
     lines += ["", "| thirds by the angular acceleration | lowest | middle | highest |", "|---|---|---|---|"]
     for label, a in accel.items():
-        edges = np.quantile(a[k], [0.0, 1 / 3, 2 / 3, 1.0])
-        thirds = [k[(a[k] >= lo) & (a[k] <= hi)] for lo, hi in zip(edges[:-1], edges[1:])]
+        known = k[np.isfinite(a[k])]
+        edges = np.quantile(a[known], [0.0, 1 / 3, 2 / 3, 1.0])
+        third = np.clip(np.searchsorted(edges, a[known], side="right") - 1, 0, 2)
+        thirds = [known[third == i] for i in range(3)]
         lines.append(f"| {label} | " + " | ".join(f"{frame_deg(m)} ({edges[i]:.1f}-{edges[i + 1]:.1f} rad/s^2)"
                                                   for i, m in enumerate(thirds)) + " |")
     return lines + [""]

@@ -23,7 +23,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from covo_gtsam.calibration import ERROR_TERMS, TwistChanges, frame_covariance, latency_basis  # noqa: E402
+from covo_gtsam.calibration import ERROR_TERMS, TwistChanges, latency_basis  # noqa: E402
 from covo_gtsam.metrics import nees, se3_log  # noqa: E402
 from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_sequence  # noqa: E402
 
@@ -240,7 +240,7 @@ def default_parts(q) -> dict:
     mean share of their rotation variance (trace), and their rotation ANEES without the frame term."""
     m = q.consecutive & ~q.bad
     e, C = q.errors[m], q.covariances[m]
-    frame = frame_covariance(np.deg2rad(DEFAULTS.sensor.frame_sigma_rot_deg), DEFAULTS.sensor.frame_sigma_trans_m)
+    frame = DEFAULTS.sensor.frame_noise()  # consecutive pairs: one frame interval
     rot = np.einsum("nii->n", C[:, :3, :3])
     return {"def_t": nees(e[:, 3:], C[:, 3:, 3:]).mean(), "def_r": nees(e[:, :3], C[:, :3, :3]).mean(),
             "def_share": float(np.mean(np.trace(frame[:3, :3]) / rot)),

@@ -382,9 +382,9 @@ def test_terms_fitted_on_a_brisk_turn_hold_on_a_gentle_one():
     gentle = simulate_sequence(dataclasses.replace(base, max_angular_speed=0.25), TRUTH)
     m = gentle.kept_consecutive
     anees = {}
+    e = gentle.errors[m]
     for label, fit in fits.items():
-        C = fit.covariances(gentle.covariances[m], {k: v[m] for k, v in gentle.bases.items() if k in fit.sigmas})
-        e = gentle.errors[m]
+        C = gentle.kept_covariances(fit)
         anees[label] = (nees(e[:, 3:], C[:, 3:, 3:]).mean(), nees(e[:, :3], C[:, :3, :3]).mean())
     assert 2.0 < anees["all"][0] < 4.5 and 2.0 < anees["all"][1] < 4.5, anees
     assert anees["no latency"][1] < 1.0, anees
