@@ -168,7 +168,8 @@ def depth_clock_rows(seeds: range, frames: int) -> list[str]:
                 jump = np.abs(np.diff(r.depth_offsets[r.frames], axis=1)[:, 0]) > period / 2
                 nt, _ = r.nees(good_only=False)
                 for part, m in (("jump", jump), ("other", ~jump)):
-                    rec.setdefault(f"{part}{factor:g}_t", []).append(nt[m].mean())
+                    if m.any():
+                        rec.setdefault(f"{part}{factor:g}_t", []).append(nt[m].mean())
                 if factor:
                     rec.setdefault("n", []).append(int(jump.sum()))
                     # the error along the basis b = sqrt(B's eigenvalue) x its eigenvector, in units of b
@@ -176,6 +177,9 @@ def depth_clock_rows(seeds: range, frames: int) -> list[str]:
                     b = V[:, :, -1] * np.sqrt(np.maximum(w[:, -1:], 0.0))
                     s = np.abs(np.sum(b[:, 3:] * r.errors[jump, 3:], axis=1) / np.sum(b[:, 3:] ** 2, axis=1))
                     rec.setdefault("size", []).extend(s)
+        if not rec.get("size"):  # runs too short for the offset to reach half a period
+            rows.append(f"| {speed:g} | 0 | — | — | {mean_sd(rec['other1_t'])} | — |")
+            continue
         rows.append(f"| {speed:g} | {sum(rec['n'])} | {mean_sd(rec['jump0_t'])} | {mean_sd(rec['jump1_t'])} | "
                     f"{mean_sd(rec['other1_t'])} | {np.median(rec['size']):.2f} ({np.percentile(rec['size'], 10):.2f}"
                     f"-{np.percentile(rec['size'], 90):.2f}) |")
