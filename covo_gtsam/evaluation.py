@@ -222,6 +222,9 @@ class RunEvaluation:
     #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
     self_calibration: dict | None = None
+    #: how much of the reported covariance is the constant frame term (:func:`frame_term_share`), set
+    #: by :func:`~covo_gtsam.pipeline.run_sequence`
+    frame_term_share: dict | None = None
     #: the camera the run used (intrinsics, distortion, image size, depth scale), set by the pipeline
     camera: dict | None = None
     #: the covo-gtsam version that made the run, set by the pipeline
@@ -256,8 +259,8 @@ class RunEvaluation:
         ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`, ``chains``,
         ``nees_breakdown``, ``reference_jitter``, ``reference_axes``, ``twist_change_response``,
         ``nees_with_reference_jitter`` and ``without_reference_jitter`` (without ground truth null,
-        each with that reason under ``not_computed``), then ``self_calibration`` and ``version`` when
-        they are set (docs/metrics.md)."""
+        each with that reason under ``not_computed``), then ``self_calibration``, ``frame_term_share``,
+        ``camera`` and ``version`` when they are set (docs/metrics.md)."""
         out: dict = {
             "sequence": self.sequence,
             "frames": self.frames,
@@ -291,6 +294,8 @@ class RunEvaluation:
         out["without_reference_jitter"] = self.without_reference_jitter
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
+        if self.frame_term_share is not None:
+            out["frame_term_share"] = self.frame_term_share
         if self.camera is not None:
             out["camera"] = self.camera
         if self.version is not None:
@@ -436,6 +441,29 @@ def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T
     return {"rotation_vector_deg": np.rad2deg(fit["rotation_rad"]).tolist(),
             "standard_error_deg": np.rad2deg(fit["standard_error_rad"]).tolist(),
             "reduced_chi2": fit["reduced_chi2"], "pairs": fit["pairs"], "chains_anees_rotation": chains}
+
+
+def frame_term_share(steps: Sequence[OdometryStep], sensor) -> dict | None:
+    """``metrics.json``'s ``frame_term_share``: over the pairs with a relative pose, the median share of
+    the reported rotation and translation variance (the trace of each 3x3 block) that is the frame
+    term (``sensor.frame_noise`` of the pair's interval, a :class:`~covo_gtsam.config.SensorConfig`):
+    the part of the covariance that follows neither the motion nor the scene, fitted on the
+    freiburg1 Kinect by default. ``rotation`` and ``translation`` (0-1) and ``pairs``; None without
+    such a pair."""
+    shares = []
+    for s in steps:
+        if not s.has_relative_pose or s.covariance is None or s.ref_timestamp is None:
+            continue
+        try:
+            F = sensor.frame_noise(s.timestamp - s.ref_timestamp)
+        except InputError:  # an interval no camera has (the odometry refuses such pairs)
+            continue
+        C = np.asarray(s.covariance, dtype=float)
+        shares.append([np.trace(F[b, b]) / np.trace(C[b, b]) for b in (slice(0, 3), slice(3, 6))])
+    if not shares:
+        return None
+    rotation, translation = np.median(np.array(shares), axis=0)
+    return {"rotation": float(rotation), "translation": float(translation), "pairs": len(shares)}
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -414,10 +414,11 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
         bar.close()
     elapsed = time.perf_counter() - start
 
-    from .evaluation import evaluate_run
+    from .evaluation import evaluate_run, frame_term_share
 
     evaluation = evaluate_run(history.steps, seq, elapsed)
     evaluation.self_calibration = vo.self_calibration()
+    evaluation.frame_term_share = frame_term_share(history.steps, config.sensor)
     cam = vo.camera
     evaluation.camera = {"name": cam.name, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                          "distortion": list(cam.dist), "width": cam.width, "height": cam.height,

@@ -32,7 +32,7 @@ def test_metrics_json_is_the_result_object_serialised(sample_run):
     ev = sample_run.evaluation
     assert isinstance(ev, RunEvaluation)
     written = json.loads((sample_run.out_dir / "metrics.json").read_text())
-    assert list(written) == [*BASE_KEYS, *GT_KEYS, "self_calibration", "camera", "version"]
+    assert list(written) == [*BASE_KEYS, *GT_KEYS, "self_calibration", "frame_term_share", "camera", "version"]
     assert written == json.loads(json.dumps(ev.to_dict())) == json.loads(json.dumps(sample_run.metrics))
     assert ev.to_dict() is not ev.to_dict() and ev.to_dict()["lost"] is not ev.lost  # copies
 
@@ -359,7 +359,7 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
     written = json.loads((sample_run.out_dir / "metrics.json").read_text())
     keys = set(written)
     for name in ("rpe_1", "ate", "chains", "nees_breakdown", "reference_jitter", "reference_axes",
-                 "twist_change_response", "self_calibration", "camera"):
+                 "twist_change_response", "self_calibration", "frame_term_share", "camera"):
         assert isinstance(written[name], dict), name  # the sample run has them all
         keys |= set(written[name])
     from covo_gtsam.nees_breakdown import window_statistics
@@ -378,3 +378,34 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
     fr1 = Camera.preset("fr1")
     assert written["camera"] == {"name": "fr1", "fx": fr1.fx, "fy": fr1.fy, "cx": fr1.cx, "cy": fr1.cy,
                                  "distortion": list(fr1.dist), "width": 640, "height": 480, "depth_scale": 5000.0}
+
+
+def test_frame_term_share_is_the_constants_part_of_each_block():
+    """The median over the pairs with a relative pose of the frame term's share of each block's
+    trace: for covariances that are the frame term plus a known rest the shares are known; pairs
+    without a relative pose do not count, a pair over two intervals takes the term twice, and a
+    run without such a pair has none."""
+    import gtsam
+
+    from covo_gtsam.config import SensorConfig
+    from covo_gtsam.evaluation import frame_term_share
+    from covo_gtsam.odometry import OdometryStep
+
+    sensor = SensorConfig(frame_sigma_rot_deg=0.1, frame_sigma_trans_m=0.002)
+    r2, t2 = np.deg2rad(0.1) ** 2, 0.002**2
+    dt = sensor.frame_interval_s
+    steps = [OdometryStep(0.0, "first")]
+    for k, (rest_r, rest_t, intervals) in enumerate(((3 * r2, t2, 1), (r2 / 3, 3 * t2, 1), (2 * r2, 2 * t2, 2))):
+        C = sensor.frame_noise(intervals * dt) + np.diag([rest_r] * 3 + [rest_t] * 3)
+        steps.append(OdometryStep((k + 1) * dt, "tracked", ref_timestamp=(k + 1 - intervals) * dt,
+                                  relative=gtsam.Pose3(), covariance=C))
+    steps.append(OdometryStep(9 * dt, "lost", reason="too few matches"))
+    out = frame_term_share(steps, sensor)
+    # rotation shares 1/4, 3/4 and 2/4 (the two-interval pair: 2 r2 of 4 r2); translation (frame term
+    # k^2 t2) 1/2, 1/4 and 4/6
+    assert out["pairs"] == 3
+    assert out["rotation"] == pytest.approx(0.5)
+    assert out["translation"] == pytest.approx(0.5)
+    assert frame_term_share(steps, SensorConfig(frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0)) == {
+        "rotation": 0.0, "translation": 0.0, "pairs": 3}
+    assert frame_term_share(steps[:1] + steps[-1:], sensor) is None
