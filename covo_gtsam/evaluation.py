@@ -22,7 +22,8 @@ from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
 from .geometry import invert_pose
 from .integrity import below_majority
-from .metrics import anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
+from .metrics import (anees, ate_errors, ate_statistics, block_shares, relative_pose_errors, relative_pose_nees,
+                      rpe_statistics)
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
 from .reference_noise import (
@@ -450,20 +451,19 @@ def frame_term_share(steps: Sequence[OdometryStep], sensor) -> dict | None:
     the part of the covariance that follows neither the motion nor the scene, fitted on the
     freiburg1 Kinect by default. ``rotation`` and ``translation`` (0-1) and ``pairs``; None without
     such a pair."""
-    shares = []
+    frames, covs = [], []
     for s in steps:
         if not s.has_relative_pose or s.covariance is None or s.ref_timestamp is None:
             continue
         try:
-            F = sensor.frame_noise(s.timestamp - s.ref_timestamp)
+            frames.append(sensor.frame_noise(s.timestamp - s.ref_timestamp))
         except InputError:  # an interval no camera has (the odometry refuses such pairs)
             continue
-        C = np.asarray(s.covariance, dtype=float)
-        shares.append([np.trace(F[b, b]) / np.trace(C[b, b]) for b in (slice(0, 3), slice(3, 6))])
-    if not shares:
+        covs.append(s.covariance)
+    if not covs:
         return None
-    rotation, translation = np.median(np.array(shares), axis=0)
-    return {"rotation": float(rotation), "translation": float(translation), "pairs": len(shares)}
+    rotation, translation = np.median(block_shares(np.array(frames), np.array(covs)), axis=0)
+    return {"rotation": float(rotation), "translation": float(translation), "pairs": len(covs)}
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -17,6 +17,7 @@ from .geometry import invert_pose, rotation_angle, similarity_fit, skew
 __all__ = [
     "anees",
     "ate",
+    "block_shares",
     "ate_errors",
     "ate_statistics",
     "chi2_cdf",
@@ -137,6 +138,15 @@ def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     if err.ndim != 2 or cov.shape != err.shape + (err.shape[1],):
         raise InputError(f"need errors (N, d) and covariances (N, d, d), got {err.shape} and {cov.shape}")
     return np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+
+
+def block_shares(part: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Share (N, 2) of each covariance's rotation and translation variance (the trace of each 3x3
+    block, tangent ``[omega, v]``) that is ``part``: covariances (N, 6, 6), ``part`` (6, 6) or (N, 6, 6)."""
+    cov = np.asarray(cov, dtype=float)
+    part = np.broadcast_to(np.asarray(part, dtype=float), cov.shape)
+    return np.stack([np.einsum("nii->n", part[:, b, b]) / np.einsum("nii->n", cov[:, b, b])
+                     for b in (slice(0, 3), slice(3, 6))], axis=1)
 
 
 def anees(values: np.ndarray) -> float:

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from covo_gtsam.calibration import ERROR_TERMS, TwistChanges, latency_basis  # noqa: E402
-from covo_gtsam.metrics import nees, se3_log  # noqa: E402
+from covo_gtsam.metrics import block_shares, nees, se3_log  # noqa: E402
 from covo_gtsam.sequence_simulation import SequenceSimulationConfig, simulate_sequence  # noqa: E402
 
 #: the odometry's defaults told the simulated sensor's readout
@@ -245,9 +245,8 @@ def default_parts(q) -> dict:
     m = q.consecutive & ~q.bad
     e, C = q.errors[m], q.covariances[m]
     frame = DEFAULTS.sensor.frame_noise()  # consecutive pairs: one frame interval
-    rot = np.einsum("nii->n", C[:, :3, :3])
     return {"def_t": nees(e[:, 3:], C[:, 3:, 3:]).mean(), "def_r": nees(e[:, :3], C[:, :3, :3]).mean(),
-            "def_share": float(np.mean(np.trace(frame[:3, :3]) / rot)),
+            "def_share": float(np.mean(block_shares(frame, C)[:, 0])),
             "def_r_noframe": nees(e[:, :3], (C - frame)[:, :3, :3]).mean()}
 
 
