@@ -19,12 +19,9 @@ def test_real_frames_stamped_as_synchronised_keep_a_consistent_covariance(fr1_rp
     from covo_gtsam.chi2 import CHI2_3_975
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.evaluation import evaluate_run
-    from covo_gtsam.odometry import VisualOdometry
 
     seq = TumSequence(fr1_rpy_dir)
-    vo = VisualOdometry(seq.camera_name)
-    steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.timestamps[i])
-             for i in range(len(seq.timestamps))]
+    vo, steps = _register(seq, range(len(seq.timestamps)), synchronised=True)
     posed = [s for s in steps if s.has_relative_pose]
     assert len(posed) >= 235
     for name in ("depth_time", "depth_time_coherent", "depth_jump"):
@@ -40,20 +37,27 @@ def test_real_frames_stamped_as_synchronised_keep_a_consistent_covariance(fr1_rp
         assert n.max() < 100
 
 
+def _register(seq, frames: range, synchronised: bool) -> tuple:
+    """A new odometry run over ``frames`` of ``seq``, each depth image stamped at its colour image's
+    time if ``synchronised``, else as stamped: the odometry and its steps."""
+    from covo_gtsam.odometry import VisualOdometry
+
+    vo = VisualOdometry(seq.camera_name)
+    stamps = seq.timestamps if synchronised else seq.depth_timestamps
+    return vo, [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=stamps[i]) for i in frames]
+
+
 def _short_runs(fr1_rpy_dir, synchronised: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """fr1_rpy's 240 frames as 15 runs of 16 frames each (depth images stamped at their colour
     images' times if ``synchronised``, else as stamped): translation and rotation NEES of every
     pair as ``metrics.json`` has them, and each pair's place in its run (1: the first)."""
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.evaluation import evaluate_run
-    from covo_gtsam.odometry import VisualOdometry
 
     seq = TumSequence(fr1_rpy_dir)
     nt, nr = [], []
     for start in range(0, 240, 16):
-        vo = VisualOdometry(seq.camera_name)
-        steps = [vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.timestamps[i]
-                                   if synchronised else seq.depth_timestamps[i]) for i in range(start, start + 16)]
+        _, steps = _register(seq, range(start, start + 16), synchronised)
         ev = evaluate_run(steps, seq, 1.0)
         assert not ev.lost and len(ev.nees_translation) == 15  # every pair posed, in order
         nt.append(ev.nees_translation)
