@@ -396,7 +396,8 @@ class VisualOdometry(DeprecatedStepAccess):
         pairs = associate_frames(ref, frame, self.config.frontend, None if guess is None else guess.matrix(),
                                  self.camera)
         step = OdometryStep(timestamp, StepStatus.LOST, ref_timestamp=ref_step.timestamp,
-                            num_matches=pairs.num_matches, num_pairs=pairs.num_inliers)
+                            num_matches=pairs.num_matches, num_pairs=pairs.num_inliers,
+                            depth_jump_s=self._depth_jump(ref, frame))
         min_pairs = self.config.frontend.min_pairs
         if pairs.num_inliers < min_pairs:
             step.reason = (f"only {pairs.num_inliers} point pairs (need {min_pairs}; {frame.num_features} features "
@@ -414,7 +415,8 @@ class VisualOdometry(DeprecatedStepAccess):
         # time between the two captures: the stamps' difference corrected by the frame clock
         dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)
         try:
-            res, X_ref, X_cur, pairs, compensation = self._solve_pair(ref, ref_step, frame, pairs, dt, timestamp)
+            res, X_ref, X_cur, pairs, compensation = self._solve_pair(ref, ref_step, frame, pairs, dt, timestamp,
+                                                                      step.depth_jump_s)
         except (EstimationError, InputError) as exc:  # InputError: e.g. points moved beyond range by compensation
             step.reason = str(exc)
             return step
@@ -428,7 +430,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp, ref, pairs, gains)
         step.error_bases, b, shutter = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists,
-                                                         dt, timestamp, r_cur, gains)
+                                                         dt, timestamp, r_cur, gains, step.depth_jump_s)
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -438,7 +440,6 @@ class VisualOdometry(DeprecatedStepAccess):
             step.reason = "the pair's covariance is not finite and positive definite"
             return step
         step.status = StepStatus.RELATIVE_POSE
-        step.depth_jump_s = self._depth_jump(ref, frame)
         check = self._integrity_check(step, res.pose, X_ref, X_cur, pairs)
         # the pose reported moves by the depth's drift; the twists stay the 3D-3D estimate's, as the
         # next pair's rolling-shutter compensation takes them (a moved twist would change by the
@@ -538,7 +539,7 @@ class VisualOdometry(DeprecatedStepAccess):
         return twist_ref, twist_cur
 
     def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs: PointPairs, dt: float,
-                    timestamp: float
+                    timestamp: float, jump: float
                     ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray, PointPairs,
                                tuple[np.ndarray, np.ndarray] | None]:
         """``(result, X_ref, X_cur, pairs, compensation)``: the pair's relative pose. With motion (``dt > 0``) the
@@ -549,7 +550,7 @@ class VisualOdometry(DeprecatedStepAccess):
         the pair is solved on the unmoved points, the twists are taken from that solution and it is
         solved again. The points and pairs returned are those of the last solve; ``compensation``
         the twists (6,) the reference's and the current frame's points were moved with (None when
-        not moved)."""
+        not moved). ``jump`` is the pair's depth-period jump (s, :meth:`_depth_jump`)."""
         X_ref, X_cur = pairs.X_ref, pairs.X_cur
         initial = None if pairs.T_init is None else gtsam.Pose3(pairs.T_init)
         compensate = dt > 0 and (
@@ -562,13 +563,13 @@ class VisualOdometry(DeprecatedStepAccess):
         if compensate:
             twist_ref, twist_cur = self._frame_twists(initial, dt, ref_step, timestamp)
             compensation = (twist_ref, twist_cur)
-            pairs = self._with_motion_noise(pairs, ref, frame, twist_ref, twist_cur)
+            pairs = self._with_motion_noise(pairs, ref, frame, twist_ref, twist_cur, jump)
             X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
             X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
         return self._solve(X_ref, X_cur, pairs, initial), X_ref, X_cur, pairs, compensation
 
     def _with_motion_noise(self, pairs: PointPairs, ref: FrameData, frame: FrameData, twist_ref: np.ndarray,
-                           twist_cur: np.ndarray) -> PointPairs:
+                           twist_cur: np.ndarray, jump: float) -> PointPairs:
         """``pairs`` with each point's covariance grown by what the camera's motion does to it: the
         depth image's change over the frame's colour-depth offset (``noise.depth_offset_factor`` times
         the stamped one, or half the pair's depth-period jump where that is more; the depth image saw
@@ -577,7 +578,7 @@ class VisualOdometry(DeprecatedStepAccess):
         :func:`~covo_gtsam.noise.depth_lookup_variance`, along the viewing ray) and motion blur over
         ``noise.exposure_s`` (:func:`~covo_gtsam.noise.blur_covariances`)."""
         c, exposure = self.config.noise.depth_offset_factor, self.config.noise.exposure_s
-        half_jump = 0.5 * abs(self._depth_jump(ref, frame))  # each frame's depth image that far off the pair's
+        half_jump = 0.5 * abs(jump)  # each frame's depth image that far off the pair's
         Q = []
         for fd, X, uv, Q_f, twist in ((ref, pairs.X_ref, pairs.uv_ref, pairs.Q_ref, twist_ref),
                                       (frame, pairs.X_cur, pairs.uv_cur, pairs.Q_cur, twist_cur)):
@@ -777,8 +778,8 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
-                     dt: float, timestamp: float, r_cur: float | None, gains: tuple[np.ndarray, np.ndarray]
-                     ) -> tuple[dict, np.ndarray, np.ndarray | None]:
+                     dt: float, timestamp: float, r_cur: float | None, gains: tuple[np.ndarray, np.ndarray],
+                     jump: float) -> tuple[dict, np.ndarray, np.ndarray | None]:
         """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`), its
         response ``b`` (6,) to the current frame's depths scaled by ``1 + e`` (per unit ``e``) and
         its response (6x6) to an error of the current frame's rolling-shutter twist (None without
@@ -786,7 +787,8 @@ class VisualOdometry(DeprecatedStepAccess):
         ``twists`` are the camera's twists at the two frames
         (:func:`~covo_gtsam.rolling_shutter.frame_twists`), None without motion; ``r_cur`` the current
         frame's move to its stamp (:meth:`_capture_interval`); ``gains`` the estimate's response to
-        each point of the reference and the current frame (:func:`~covo_gtsam.frame_errors.transfer_gains`)."""
+        each point of the reference and the current frame (:func:`~covo_gtsam.frame_errors.transfer_gains`);
+        ``jump`` the pair's depth-period jump (s, :meth:`_depth_jump`)."""
         M = T.matrix()
         G_ref, G_cur = gains
         b_ref, b_cur = depth_scale_basis(G_ref, X_ref), depth_scale_basis(G_cur, X_cur)
@@ -829,7 +831,6 @@ class VisualOdometry(DeprecatedStepAccess):
         bases["depth_time_coherent"] = np.outer(h, h)
         # the depth images read whole periods apart (the nearest depth image switched to a neighbour):
         # as if the current frame's were read half the change later and the reference's half earlier
-        jump = self._depth_jump(ref, frame)
         j = np.zeros(6)
         if jump:
             for fd, G, X, uv, twist, shift in ((ref, G_ref, X_ref, pairs.uv_ref, twist_ref, -0.5 * jump),
