@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .datasets import frame_count
 from .datasets.tum import TumSequence
 from .errors import DatasetError, InputError
 from .frontend import FrontendConfig, associate_frames, make_orb, prepare_frame
@@ -51,7 +52,7 @@ def analyze_sequence(seq: TumSequence, cfg: FrontendConfig | None = None, pixel_
     orb = make_orb(cfg)
     depth_model = KinectAxialNoise()
     model = PointNoiseModel(pixel=PixelNoise(pixel_sigma, pixel_sigma), depth=depth_model)
-    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+    n = frame_count(seq, max_frames)
     if n < 2:
         raise DatasetError(f"{seq.path}: the noise analysis needs at least 2 frames (frame pairs), got {n}")
     frames = range(n)

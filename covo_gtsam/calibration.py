@@ -76,7 +76,7 @@ from .errors import InputError
 
 __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_covariance", "timing_covariance",
            "stamp_error_basis", "twist_change", "known_change_basis", "central_change_basis", "latency_basis",
-           "TwistChanges", "span_basis", "sensor_covariance",
+           "TwistChanges", "span_basis", "sensor_covariance", "sensor_terms",
            "log_likelihood", "fit_sensor_terms", "MIN_SPAN_PAIRS", "span_fit_pairs", "fit_span_factor"]
 
 #: Frame-level error terms and the :class:`~covo_gtsam.config.SensorConfig` field holding each sigma.
@@ -371,13 +371,24 @@ def sensor_covariance(point_cov: np.ndarray, correlation_factor: float, sigma_ro
     ``point_cov`` (..., 6, 6), ``intervals`` (...,) and each basis ``bases[j]`` (..., 6, 6)
     broadcast; ``sigmas[j]`` is the sigma of term ``j`` (0 if absent); tangent ``[omega, v]``.
     """
-    C = correlation_factor * np.asarray(point_cov, dtype=float) + frame_covariance(
-        sigma_rot_rad, sigma_trans_m, intervals)
+    C = correlation_factor * np.asarray(point_cov, dtype=float)
+    for term in sensor_terms(sigma_rot_rad, sigma_trans_m, intervals, bases, sigmas).values():
+        C = C + term
+    return C
+
+
+def sensor_terms(sigma_rot_rad: float, sigma_trans_m: float, intervals: np.ndarray | int = 1,
+                 bases: Mapping[str, np.ndarray] | None = None,
+                 sigmas: Mapping[str, float] | None = None) -> dict[str, np.ndarray]:
+    """The sensor terms of :func:`sensor_covariance`, each on its own: ``"frame_term"``
+    (:func:`frame_covariance`) and, by name, each frame-level term with ``sigmas[j] > 0``,
+    ``sigma_j^2 B_j`` (..., 6, 6)."""
+    terms = {"frame_term": frame_covariance(sigma_rot_rad, sigma_trans_m, intervals)}
     for name, B in (bases or {}).items():
         sigma = (sigmas or {}).get(name, 0.0)
         if sigma > 0:
-            C = C + sigma**2 * np.asarray(B, dtype=float)
-    return C
+            terms[name] = sigma**2 * np.asarray(B, dtype=float)
+    return terms
 
 
 def log_likelihood(errors: np.ndarray, covs: np.ndarray) -> float:

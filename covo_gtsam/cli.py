@@ -94,9 +94,11 @@ def cmd_run(args: argparse.Namespace) -> int:
                if gt.is_file() else "no ground truth")
         print(f"{seq.name}: {why}; accuracy and consistency metrics skipped")
     if not args.config and not _is_fr1(seq, told=bool(args.camera)):  # the default terms are a freiburg1 Kinect's
-        share = m.get("frame_term_share")
-        constant = "" if share is None else (f"; their constant frame term is {100 * share['rotation']:.0f} % of "
-                                             "this run's rotation variance")
+        parts = m.get("covariance_parts")
+        constant = "" if parts is None else (
+            f"; they are {100 * (1 - parts['rotation']['points']):.0f} % of this run's rotation variance and "
+            f"{100 * (1 - parts['translation']['points']):.0f} % of its translation variance, the constant frame "
+            f"term {100 * parts['rotation']['frame_term']:.0f} % of the rotation")
         print(f"note: the covariance's sensor terms are the defaults, fitted on the freiburg1 Kinect of TUM RGB-D "
               f"(this camera: {seq.camera.name}{constant}); check them on this camera with covo calibrate on a "
               "sequence with ground truth (README, \"Known limits of the covariance\")")

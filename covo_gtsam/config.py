@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .calibration import ERROR_TERMS, frame_covariance, sensor_covariance
+from .calibration import ERROR_TERMS, frame_covariance, sensor_covariance, sensor_terms
 from .choices import MotionModel, RobustKernel, Weighting
 from .errors import ConfigError, InputError
 from .frontend import FrontendConfig
@@ -207,6 +207,13 @@ class SensorConfig:
         + sum_j sigma_j^2 B_j`` over the pair's frame-level error bases ``bases``."""
         return sensor_covariance(point_covariance, self.correlation_factor, np.deg2rad(self.frame_sigma_rot_deg),
                                  self.frame_sigma_trans_m, self.frame_intervals(dt), bases, self.term_sigmas())
+
+    def sensor_terms(self, dt: float | None = None, bases: Mapping[str, np.ndarray] | None = None
+                     ) -> dict[str, np.ndarray]:
+        """The sensor terms of :meth:`sensor_covariance` by name, each 6x6: ``"frame_term"``
+        (:meth:`frame_noise`) and each frame-level term with a sigma above 0, ``sigma_j^2 B_j``."""
+        return sensor_terms(np.deg2rad(self.frame_sigma_rot_deg), self.frame_sigma_trans_m, self.frame_intervals(dt),
+                            bases, self.term_sigmas())
 
     def term_sigmas(self) -> dict[str, float]:
         """Sigma of each frame-level error term (:data:`covo_gtsam.calibration.ERROR_TERMS`)."""

@@ -22,7 +22,7 @@ from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
 from .geometry import invert_pose
 from .integrity import below_majority
-from .metrics import (anees, ate_errors, ate_statistics, block_shares, relative_pose_errors, relative_pose_nees,
+from .metrics import (anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees,
                       rpe_statistics)
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
@@ -87,16 +87,35 @@ def chain_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray, length: int = CH
     return {"pairs_per_chain": int(length), **consistency_statistics(nees_rot, nees_tr, band=False)}
 
 
-def chain_nees(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
-               length: int = CHAIN_PAIRS, jitter=None) -> tuple[np.ndarray, np.ndarray]:
-    """NEES of the rotation and of the translation (M,) of every chain of ``length`` linked tracked
-    pairs, the covariance composed as independent between factors compose it
-    (:func:`~covo_gtsam.covariance.compose_chains`), against the ground truth between the chain's
-    ends. A pair links to the pair that ends at its reference frame: frame to frame the previous
-    one (across lost frames too), with keyframes the keyframe's own. A chain stops at a restart and
-    at a frame without ground truth. ``jitter(ref_stamps, cur_stamps)``, if given, is what the
-    reference's own noise adds to the error between two frames (N, 6, 6), added at the chains' ends.
-    :class:`InputError` when no chain is that long."""
+@dataclass(frozen=True)
+class LinkedChains:
+    """Chains of linked tracked pairs, composed (:func:`linked_chains`): the relative poses ``T``
+    (M, 4, 4) and covariances ``C`` (M, 6, 6) from each chain's first frame to its last, and the
+    stamps ``first`` and ``last`` (M,) of those frames."""
+
+    T: np.ndarray
+    C: np.ndarray
+    first: np.ndarray
+    last: np.ndarray
+
+    def nees(self, stamp_to_gt: dict[float, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """NEES of the rotation and of the translation (M,) of each chain against the ground truth
+        ``stamp_to_gt`` (a pose T_world,cam at each stamp) between its two ends."""
+        starts = np.array([stamp_to_gt[t] for t in self.first])
+        ends = np.array([stamp_to_gt[t] for t in self.last])
+        return relative_pose_nees(self.T, invert_pose(starts) @ ends, self.C)
+
+
+def linked_chains(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
+                  length: int = CHAIN_PAIRS, jitter=None) -> LinkedChains:
+    """Every chain of ``length`` linked tracked pairs with ground truth at their frames, the
+    covariance composed as independent between factors compose it
+    (:func:`~covo_gtsam.covariance.compose_chains`). A pair links to the pair that ends at its
+    reference frame: frame to frame the previous one (across lost frames too), with keyframes the
+    keyframe's own. A chain stops at a restart and at a frame without ground truth.
+    ``jitter(ref_stamps, cur_stamps)``, if given, is what the reference's own noise adds to the
+    error between two frames (N, 6, 6), added at the chains' ends. :class:`InputError` when no
+    chain is that long."""
     pairs = pairs_with_truth(steps, stamp_to_gt)
     ending = {s.timestamp: i for i, s in enumerate(pairs)}
     chains = []
@@ -108,15 +127,20 @@ def chain_nees(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarra
             chains.append(chain[::-1])
     if not chains:
         raise InputError(f"no chain of {length} linked tracked pairs with ground truth")
-    index = np.array(chains)
     T_chain, C_chain = compose_chains(np.array([s.relative.matrix() for s in pairs]),
-                                      np.array([s.covariance for s in pairs]), index)
-    first, last = [pairs[c[0]].ref_timestamp for c in chains], [pairs[c[-1]].timestamp for c in chains]
+                                      np.array([s.covariance for s in pairs]), np.array(chains))
+    first = np.array([pairs[c[0]].ref_timestamp for c in chains])
+    last = np.array([pairs[c[-1]].timestamp for c in chains])
     if jitter is not None:
-        C_chain = C_chain + jitter(np.array(first), np.array(last))
-    starts = np.array([stamp_to_gt[t] for t in first])
-    ends = np.array([stamp_to_gt[t] for t in last])
-    return relative_pose_nees(T_chain, invert_pose(starts) @ ends, C_chain)
+        C_chain = C_chain + jitter(first, last)
+    return LinkedChains(T_chain, C_chain, first, last)
+
+
+def chain_nees(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray],
+               length: int = CHAIN_PAIRS, jitter=None) -> tuple[np.ndarray, np.ndarray]:
+    """NEES of the rotation and of the translation (M,) of every chain of :func:`linked_chains`
+    against the ground truth between the chain's ends."""
+    return linked_chains(steps, stamp_to_gt, length, jitter).nees(stamp_to_gt)
 
 
 def tracked_segments(steps: Sequence[OdometryStep], stamp_to_gt: dict[float, np.ndarray]):
@@ -223,9 +247,9 @@ class RunEvaluation:
     #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
     self_calibration: dict | None = None
-    #: how much of the reported covariance is the constant frame term (:func:`frame_term_share`), set
-    #: by :func:`~covo_gtsam.pipeline.run_sequence`
-    frame_term_share: dict | None = None
+    #: what the reported covariances are made of (:func:`covariance_parts`), set by
+    #: :func:`~covo_gtsam.pipeline.run_sequence`
+    covariance_parts: dict | None = None
     #: the camera the run used (intrinsics, distortion, image size, depth scale), set by the pipeline
     camera: dict | None = None
     #: the covo-gtsam version that made the run, set by the pipeline
@@ -260,7 +284,7 @@ class RunEvaluation:
         ``segments``, ``rpe_<delta>``, ``ate``, the :data:`CONSISTENCY_KEYS`, ``chains``,
         ``nees_breakdown``, ``reference_jitter``, ``reference_axes``, ``twist_change_response``,
         ``nees_with_reference_jitter`` and ``without_reference_jitter`` (without ground truth null,
-        each with that reason under ``not_computed``), then ``self_calibration``, ``frame_term_share``,
+        each with that reason under ``not_computed``), then ``self_calibration``, ``covariance_parts``,
         ``camera`` and ``version`` when they are set (docs/metrics.md)."""
         out: dict = {
             "sequence": self.sequence,
@@ -295,8 +319,8 @@ class RunEvaluation:
         out["without_reference_jitter"] = self.without_reference_jitter
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
-        if self.frame_term_share is not None:
-            out["frame_term_share"] = self.frame_term_share
+        if self.covariance_parts is not None:
+            out["covariance_parts"] = self.covariance_parts
         if self.camera is not None:
             out["camera"] = self.camera
         if self.version is not None:
@@ -375,8 +399,11 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
             ev.not_computed, "without_reference_jitter",
             lambda: consistency_statistics(*relative_pose_nees(T_est, T_true, reported)), no_pairs)
 
+    linked: list[LinkedChains] = []  # composed once, for the chains' NEES and for reference_axes
+
     def chains():
-        ev.chain_nees_rotation, ev.chain_nees_translation = chain_nees(steps, gt, jitter=jitter)
+        linked.append(linked_chains(steps, gt, jitter=jitter))
+        ev.chain_nees_rotation, ev.chain_nees_translation = linked[0].nees(gt)
         return chain_statistics(ev.chain_nees_rotation, ev.chain_nees_translation)
 
     ev.chains = _computed(ev.not_computed, "chains", chains, no_pairs)
@@ -388,7 +415,8 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
     ev.breakdown = _computed(ev.not_computed, "nees_breakdown", breakdown, no_pairs)
     ev.axes = _computed(ev.not_computed, "reference_axes",
-                        partial(reference_axes, steps, gt, T_est, T_true, covs, jitter), no_pairs)
+                        lambda: reference_axes(steps, gt, T_est, T_true, covs, jitter, linked[0] if linked else None),
+                        no_pairs)
 
     def response():  # the statistics, and the points of the figure's panel
         fit = twist_change_response(T_est, T_true, covs, ref_stamps, cur_stamps)
@@ -423,7 +451,7 @@ AXES_OBSERVED_DEG = 2.0
 
 
 def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T_est: np.ndarray,
-                   T_true: np.ndarray, covs: np.ndarray, jitter=None) -> dict:
+                   T_true: np.ndarray, covs: np.ndarray, jitter=None, chains: LinkedChains | None = None) -> dict:
     """``metrics.json``'s ``reference_axes``: the fixed rotation by which the reference's axes are
     turned against the estimates' (:func:`~covo_gtsam.reference_noise.axes_rotation` of the pairs
     ``T_est``, ``T_true`` with ``covs``, the reference's jitter in them), a rotation vector about the
@@ -431,39 +459,41 @@ def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T
     (the standard errors are scaled up by it where it exceeds 1), and the rotation ANEES of the
     chains (:func:`chain_nees`) against the reference turned back by it (fitted on the same pairs;
     None without a chain, or where a standard error exceeds :data:`AXES_OBSERVED_DEG`: the
-    rotation is not observed about every axis). A check of the reference (a hand-eye rotation, a
-    principal point), not a correction: the reported covariances do not carry it."""
+    rotation is not observed about every axis). ``chains``: the run's :func:`linked_chains` with
+    ``jitter``, if composed already. A check of the reference (a hand-eye rotation, a principal
+    point), not a correction: the reported covariances do not carry it."""
     fit = axes_rotation(T_est, T_true, covs)
-    chains = None
+    turned = None
     if np.all(np.rad2deg(fit["standard_error_rad"]) <= AXES_OBSERVED_DEG):
         D = axes_transform(fit["rotation_rad"])
         with contextlib.suppress(InputError):
-            chains = anees(chain_nees(steps, {t: G @ D for t, G in gt.items()}, jitter=jitter)[0])
+            chains = chains or linked_chains(steps, gt, jitter=jitter)
+            turned = anees(chains.nees({t: G @ D for t, G in gt.items()})[0])
     return {"rotation_vector_deg": np.rad2deg(fit["rotation_rad"]).tolist(),
             "standard_error_deg": np.rad2deg(fit["standard_error_rad"]).tolist(),
-            "reduced_chi2": fit["reduced_chi2"], "pairs": fit["pairs"], "chains_anees_rotation": chains}
+            "reduced_chi2": fit["reduced_chi2"], "pairs": fit["pairs"], "chains_anees_rotation": turned}
 
 
-def frame_term_share(steps: Sequence[OdometryStep], sensor) -> dict | None:
-    """``metrics.json``'s ``frame_term_share``: over the pairs with a relative pose, the median share of
-    the reported rotation and translation variance (the trace of each 3x3 block) that is the frame
-    term (``sensor.frame_noise`` of the pair's interval, a :class:`~covo_gtsam.config.SensorConfig`):
-    the part of the covariance that follows neither the motion nor the scene, fitted on the
-    freiburg1 Kinect by default. ``rotation`` and ``translation`` (0-1) and ``pairs``; None without
-    such a pair."""
-    frames, covs = [], []
-    for s in steps:
-        if not s.has_relative_pose or s.covariance is None or s.ref_timestamp is None:
-            continue
-        try:
-            frames.append(sensor.frame_noise(s.timestamp - s.ref_timestamp))
-        except InputError:  # an interval no camera has (the odometry refuses such pairs)
-            continue
-        covs.append(s.covariance)
-    if not covs:
+def covariance_parts(variance_parts: Sequence[tuple[tuple[str, ...], np.ndarray] | None]) -> dict | None:
+    """``metrics.json``'s ``covariance_parts``: over the pairs a
+    :class:`~covo_gtsam.steps.StepHistory` recorded (``variance_parts``: with a relative pose, not
+    flagged), the mean share of the reported ``rotation`` and ``translation`` variance (the trace of
+    each 3x3 block) that each sensor term is (``frame_term``, the frame-level terms by name) and
+    ``points``, the rest: the per-point model's (times kappa) with the depth-drift correction's
+    uncertainty, and for a pair the rolling-shutter look-ahead did not move, that term's model once
+    more. Each block's shares sum to 1. With the ``pairs`` counted; None without a pair."""
+    recorded = [v for v in variance_parts if v is not None]
+    if not recorded:
         return None
-    rotation, translation = np.median(block_shares(np.array(frames), np.array(covs)), axis=0)
-    return {"rotation": float(rotation), "translation": float(translation), "pairs": len(covs)}
+    names = list(dict.fromkeys(name for terms, _ in recorded for name in terms))
+    shares = np.zeros((len(recorded), len(names) + 1, 2))
+    for i, (terms, traces) in enumerate(recorded):
+        shares[i, [names.index(name) for name in terms]] = traces[:-1] / traces[-1]
+    shares[:, -1] = 1.0 - shares[:, :-1].sum(axis=1)
+    mean = shares.mean(axis=0)
+    keys = [*names, "points"]
+    return {"rotation": dict(zip(keys, map(float, mean[:, 0]))),
+            "translation": dict(zip(keys, map(float, mean[:, 1]))), "pairs": len(recorded)}
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

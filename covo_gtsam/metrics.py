@@ -17,6 +17,7 @@ from .geometry import invert_pose, rotation_angle, similarity_fit, skew
 __all__ = [
     "anees",
     "ate",
+    "block_traces",
     "block_shares",
     "ate_errors",
     "ate_statistics",
@@ -140,13 +141,17 @@ def nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
 
 
-def block_shares(part: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Share (N, 2) of each covariance's rotation and translation variance (the trace of each 3x3
-    block, tangent ``[omega, v]``) that is ``part``: covariances (N, 6, 6), ``part`` (6, 6) or (N, 6, 6)."""
+def block_traces(cov: np.ndarray) -> np.ndarray:
+    """The rotation and translation variance (..., 2) of covariances (..., 6, 6), tangent ``[omega, v]``:
+    the trace of each 3x3 block (rad^2, m^2)."""
     cov = np.asarray(cov, dtype=float)
-    part = np.broadcast_to(np.asarray(part, dtype=float), cov.shape)
-    return np.stack([np.einsum("nii->n", part[:, b, b]) / np.einsum("nii->n", cov[:, b, b])
-                     for b in (slice(0, 3), slice(3, 6))], axis=1)
+    return np.stack([np.einsum("...ii->...", cov[..., :3, :3]), np.einsum("...ii->...", cov[..., 3:, 3:])], axis=-1)
+
+
+def block_shares(part: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Share (N, 2) of each covariance's rotation and translation variance (:func:`block_traces`)
+    that is ``part``: covariances (N, 6, 6), ``part`` (6, 6) or (N, 6, 6)."""
+    return block_traces(part) / block_traces(cov)
 
 
 def anees(values: np.ndarray) -> float:

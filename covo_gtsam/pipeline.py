@@ -49,6 +49,7 @@ import numpy as np
 from . import __version__
 from .camera import Camera
 from .config import OdometryConfig, save_config
+from .datasets import frame_count
 from .datasets.tum import TumSequence
 from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData
@@ -294,7 +295,7 @@ def run_sequence(
     config = config or OdometryConfig()
     vo = VisualOdometry(seq.camera if camera is None else camera, config)
     out = check_output_dir(out_dir)
-    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+    n = frame_count(seq, max_frames)
     with FolderLock(out):
         from .plots import RUN_PLOTS
 
@@ -308,7 +309,7 @@ def run_sequence(
         remove_earlier_bags(out, bag_out, inputs)  # of the other format, or of any without --bag-out
         save_config(config, out / "config.toml", header=f"covo-gtsam {__version__}: the configuration of this run")
         with kernel_threads(1):
-            return _run(vo, StepHistory(keep_error_bases), seq, out, config, n, plots, progress, bag_out)
+            return _run(vo, StepHistory(keep_error_bases, config.sensor), seq, out, config, n, plots, progress, bag_out)
 
 
 def write_frame_ground_truth(path: Path, seq, n: int) -> bool:
@@ -414,11 +415,11 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
         bar.close()
     elapsed = time.perf_counter() - start
 
-    from .evaluation import evaluate_run, frame_term_share
+    from .evaluation import covariance_parts, evaluate_run
 
     evaluation = evaluate_run(history.steps, seq, elapsed)
     evaluation.self_calibration = vo.self_calibration()
-    evaluation.frame_term_share = frame_term_share(history.steps, config.sensor)
+    evaluation.covariance_parts = covariance_parts(history.variance_parts)
     cam = vo.camera
     evaluation.camera = {"name": cam.name, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
                          "distortion": list(cam.dist), "width": cam.width, "height": cam.height,
@@ -551,7 +552,7 @@ def strided_runs(seq, config: OdometryConfig, max_frames: int | None = None, str
     """The steps of each run of ``config`` over every ``s``-th frame of ``seq`` for each ``s`` in
     ``strides``, each phase a run of its own (pairs ``s`` frame intervals long, as from a camera that
     drops frames), all from one pass over the first ``max_frames`` frames; error bases kept."""
-    n = len(seq) if max_frames is None else min(len(seq), max_frames)
+    n = frame_count(seq, max_frames)
     runs = {(s, p): VisualOdometry(seq.camera, config) for s in strides for p in range(s)}
     histories = {key: StepHistory(keep_error_bases=True) for key in runs}  # slim: no estimator results
     any_vo = next(iter(runs.values()))

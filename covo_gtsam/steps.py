@@ -7,12 +7,18 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
 
 from .choices import Choice
+from .errors import InputError
 from .estimator import RelativePoseResult
+from .metrics import block_traces
+
+if TYPE_CHECKING:
+    from .config import SensorConfig
 
 
 class StepStatus(Choice):
@@ -119,13 +125,22 @@ class StepHistory:
     ``result`` and, unless ``keep_error_bases``, without its ``error_bases`` (what
     :func:`covo_gtsam.pipeline.calibrate_sequence` fits), so memory stays small on long runs.
 
+    Given the run's ``sensor`` settings, it also records what each pair's covariance is made of,
+    before the bases are dropped: ``variance_parts``, one entry per step, None for a step without a
+    relative pose or flagged by the integrity check, else ``(names, variances)``, the sensor terms'
+    names (:meth:`~covo_gtsam.config.SensorConfig.sensor_terms`) and their rotation and translation
+    variance (len(names) + 1, 2) (the trace of each 3x3 block, rad^2 and m^2), the last row that of
+    the whole covariance (:func:`covo_gtsam.evaluation.covariance_parts` summarises them).
+
     >>> history = StepHistory()
     >>> step = history.add(vo.register_frame(colour, depth, stamp))   # doctest: +SKIP
     """
 
-    def __init__(self, keep_error_bases: bool = False) -> None:
+    def __init__(self, keep_error_bases: bool = False, sensor: SensorConfig | None = None) -> None:
         self.keep_error_bases = keep_error_bases
+        self.sensor = sensor
         self.steps: list[OdometryStep] = []
+        self.variance_parts: list[tuple[tuple[str, ...], np.ndarray] | None] = []
         self._unsettled: OdometryStep | None = None  # the last step added, while the next frame may revise it
 
     def add(self, step: OdometryStep) -> OdometryStep:
@@ -133,12 +148,24 @@ class StepHistory:
         it: :attr:`OdometryStep.settled`); returns ``step`` itself."""
         if self._unsettled is not None and self.steps:
             self.steps[-1] = self._slim(self._unsettled)
+            self.variance_parts[-1] = self._variance_parts(self._unsettled)
         self.steps.append(self._slim(step))
+        self.variance_parts.append(self._variance_parts(step))
         self._unsettled = None if step.settled else step
         return step
 
     def _slim(self, step: OdometryStep) -> OdometryStep:
         return dataclasses.replace(step, result=None, error_bases=step.error_bases if self.keep_error_bases else None)
+
+    def _variance_parts(self, step: OdometryStep) -> tuple[tuple[str, ...], np.ndarray] | None:
+        if (self.sensor is None or not step.has_relative_pose or step.flagged or step.covariance is None
+                or step.error_bases is None or step.ref_timestamp is None):
+            return None
+        try:
+            terms = self.sensor.sensor_terms(step.timestamp - step.ref_timestamp, step.error_bases)
+        except InputError:  # an interval no camera has (the odometry refuses such pairs)
+            return None
+        return tuple(terms), block_traces(np.array([*terms.values(), step.covariance]))
 
     def __len__(self) -> int:
         return len(self.steps)

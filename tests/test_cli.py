@@ -208,10 +208,12 @@ def test_run_notes_when_the_default_sensor_terms_belong_to_another_camera(run_cl
     note = "note: the covariance's sensor terms are the defaults, fitted on the freiburg1 Kinect"
     base = ["run", str(SAMPLE_DIR), "--max-frames", "4", "--no-plots", "--quiet"]
     other = run_cli([*base, "--out", str(tmp_path / "fr3"), "--camera", "fr3"])
-    share = json.loads((tmp_path / "fr3" / "metrics.json").read_text())["frame_term_share"]["rotation"]
+    parts = json.loads((tmp_path / "fr3" / "metrics.json").read_text())["covariance_parts"]
     assert other.returncode == 0 and note in other.stdout
-    assert (f"(this camera: fr3; their constant frame term is {100 * share:.0f} % of this run's rotation "
-            "variance)") in other.stdout
+    rotation, translation = (100 * (1 - parts[block]["points"]) for block in ("rotation", "translation"))
+    assert (f"(this camera: fr3; they are {rotation:.0f} % of this run's rotation variance and {translation:.0f} % "
+            f"of its translation variance, the constant frame term {100 * parts['rotation']['frame_term']:.0f} % "
+            "of the rotation)") in other.stdout
     same = run_cli([*base, "--out", str(tmp_path / "fr1")])  # the sample's folder names freiburg1
     assert same.returncode == 0 and note not in same.stdout
     (tmp_path / "c.toml").write_text("[sensor]\nlatency_sigma_s = 0.005\n")

@@ -32,7 +32,7 @@ def test_metrics_json_is_the_result_object_serialised(sample_run):
     ev = sample_run.evaluation
     assert isinstance(ev, RunEvaluation)
     written = json.loads((sample_run.out_dir / "metrics.json").read_text())
-    assert list(written) == [*BASE_KEYS, *GT_KEYS, "self_calibration", "frame_term_share", "camera", "version"]
+    assert list(written) == [*BASE_KEYS, *GT_KEYS, "self_calibration", "covariance_parts", "camera", "version"]
     assert written == json.loads(json.dumps(ev.to_dict())) == json.loads(json.dumps(sample_run.metrics))
     assert ev.to_dict() is not ev.to_dict() and ev.to_dict()["lost"] is not ev.lost  # copies
 
@@ -359,7 +359,7 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
     written = json.loads((sample_run.out_dir / "metrics.json").read_text())
     keys = set(written)
     for name in ("rpe_1", "ate", "chains", "nees_breakdown", "reference_jitter", "reference_axes",
-                 "twist_change_response", "self_calibration", "frame_term_share", "camera"):
+                 "twist_change_response", "self_calibration", "covariance_parts", "camera"):
         assert isinstance(written[name], dict), name  # the sample run has them all
         keys |= set(written[name])
     from covo_gtsam.nees_breakdown import window_statistics
@@ -380,32 +380,48 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
                                  "distortion": list(fr1.dist), "width": 640, "height": 480, "depth_scale": 5000.0}
 
 
-def test_frame_term_share_is_the_constants_part_of_each_block():
-    """The median over the pairs with a relative pose of the frame term's share of each block's
-    trace: for covariances that are the frame term plus a known rest the shares are known; pairs
-    without a relative pose do not count, a pair over two intervals takes the term twice, and a
-    run without such a pair has none."""
+def test_covariance_parts_are_each_terms_share_of_each_block():
+    """What each pair's covariance is made of, as the history records it before the bases are
+    dropped: for covariances built as known parts (points, frame term, a latency term) the mean
+    shares are known. A pair over two intervals takes the frame term twice, a flagged pair and
+    steps without a relative pose do not count, and a step the next frame settles counts as settled."""
     import gtsam
 
     from covo_gtsam.config import SensorConfig
-    from covo_gtsam.evaluation import frame_term_share
+    from covo_gtsam.evaluation import covariance_parts
     from covo_gtsam.odometry import OdometryStep
+    from covo_gtsam.steps import StepHistory
 
-    sensor = SensorConfig(frame_sigma_rot_deg=0.1, frame_sigma_trans_m=0.002)
+    sensor = SensorConfig(frame_sigma_rot_deg=0.1, frame_sigma_trans_m=0.002, latency_sigma_s=0.01)
     r2, t2 = np.deg2rad(0.1) ** 2, 0.002**2
     dt = sensor.frame_interval_s
-    steps = [OdometryStep(0.0, "first")]
-    for k, (rest_r, rest_t, intervals) in enumerate(((3 * r2, t2, 1), (r2 / 3, 3 * t2, 1), (2 * r2, 2 * t2, 2))):
-        C = sensor.frame_noise(intervals * dt) + np.diag([rest_r] * 3 + [rest_t] * 3)
-        steps.append(OdometryStep((k + 1) * dt, "tracked", ref_timestamp=(k + 1 - intervals) * dt,
-                                  relative=gtsam.Pose3(), covariance=C))
-    steps.append(OdometryStep(9 * dt, "lost", reason="too few matches"))
-    out = frame_term_share(steps, sensor)
-    # rotation shares 1/4, 3/4 and 2/4 (the two-interval pair: 2 r2 of 4 r2); translation (frame term
-    # k^2 t2) 1/2, 1/4 and 4/6
-    assert out["pairs"] == 3
-    assert out["rotation"] == pytest.approx(0.5)
-    assert out["translation"] == pytest.approx(0.5)
-    assert frame_term_share(steps, SensorConfig(frame_sigma_rot_deg=0.0, frame_sigma_trans_m=0.0)) == {
-        "rotation": 0.0, "translation": 0.0, "pairs": 3}
-    assert frame_term_share(steps[:1] + steps[-1:], sensor) is None
+    B = np.diag([r2, r2, r2, t2, t2, t2]) / 0.01**2  # the latency term sigma^2 B: r2 and t2 per axis
+
+    def pair(k, intervals, points, flagged=False, settled=True):
+        return OdometryStep(k * dt, "tracked", ref_timestamp=(k - intervals) * dt, relative=gtsam.Pose3(),
+                            covariance=sensor.frame_noise(intervals * dt) + 0.01**2 * B + points,
+                            flagged=flagged, settled=settled, error_bases={"latency": B})
+
+    history = StepHistory(sensor=sensor)  # the bases are dropped from the steps kept
+    history.add(OdometryStep(0.0, "first"))
+    history.add(pair(1, 1, np.diag([2 * r2] * 3 + [2 * t2] * 3)))  # shares 1/4, 1/4, 1/2 in both blocks
+    unsettled = history.add(pair(3, 2, np.diag([r2] * 3 + [0.0] * 3), settled=False))
+    unsettled.covariance = unsettled.covariance + np.diag([r2] * 3 + [t2] * 3)  # as the next frame settles it
+    history.add(pair(4, 1, np.diag([50 * r2] * 3 + [50 * t2] * 3), flagged=True))
+    history.add(OdometryStep(5 * dt, "lost", reason="too few matches"))
+    assert history[1].error_bases is None and history.variance_parts[0] is None
+    out = covariance_parts(history.variance_parts)
+    # settled two-interval pair: rotation 2 r2 (frame) + r2 (latency) + 2 r2 (points) -> 2/5, 1/5, 2/5;
+    # translation 4 t2 (frame, k^2) + t2 + t2 -> 4/6, 1/6, 1/6
+    assert out["pairs"] == 2
+    assert out["rotation"] == pytest.approx({"frame_term": (1 / 4 + 2 / 5) / 2, "latency": (1 / 4 + 1 / 5) / 2,
+                                             "points": (1 / 2 + 2 / 5) / 2})
+    assert out["translation"] == pytest.approx({"frame_term": (1 / 4 + 4 / 6) / 2, "latency": (1 / 4 + 1 / 6) / 2,
+                                                "points": (1 / 2 + 1 / 6) / 2})
+    # a term whose sigma is 0 is no part; nothing recorded without the sensor or without such a pair
+    off = StepHistory(sensor=SensorConfig(frame_sigma_rot_deg=0.1, frame_sigma_trans_m=0.002, latency_sigma_s=0.0))
+    off.add(pair(1, 1, np.zeros((6, 6))))
+    assert set(covariance_parts(off.variance_parts)["rotation"]) == {"frame_term", "points"}
+    plain = StepHistory()
+    plain.add(pair(1, 1, np.zeros((6, 6))))
+    assert plain.variance_parts == [None] and covariance_parts(plain.variance_parts) is None
