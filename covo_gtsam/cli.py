@@ -96,8 +96,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not args.config and not _is_fr1(seq, told=bool(args.camera)):  # the default terms are a freiburg1 Kinect's
         parts = m.get("covariance_parts")
         constant = "" if parts is None else (
-            f"; they are {100 * (1 - parts['rotation']['points']):.0f} % of this run's rotation variance and "
-            f"{100 * (1 - parts['translation']['points']):.0f} % of its translation variance, the constant frame "
+            f"; they are {100 * _sensor_share(parts['rotation']):.0f} % of this run's rotation variance and "
+            f"{100 * _sensor_share(parts['translation']):.0f} % of its translation variance, the constant frame "
             f"term {100 * parts['rotation']['frame_term']:.0f} % of the rotation")
         print(f"note: the covariance's sensor terms are the defaults, fitted on the freiburg1 Kinect of TUM RGB-D "
               f"(this camera: {seq.camera.name}{constant}); check them on this camera with covo calibrate on a "
@@ -116,6 +116,12 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"(first lost frame: {first}); relative.txt is empty; see metrics.json", file=sys.stderr)
         return EXIT_NOTHING_TRACKED
     return 0
+
+
+def _sensor_share(block: dict) -> float:
+    """The sensor terms' share of a block of ``metrics.json``'s ``covariance_parts``: all but the
+    per-point model's and the depth-drift correction's."""
+    return 1.0 - block["points"] - block.get("depth_drift", 0.0)
 
 
 def _is_fr1(seq, told: bool) -> bool:

@@ -11,7 +11,7 @@ import contextlib
 import copy
 import math
 from dataclasses import dataclass, field
-from functools import partial
+from functools import cache, partial
 from typing import Sequence
 
 import numpy as np
@@ -87,7 +87,7 @@ def chain_statistics(nees_rot: np.ndarray, nees_tr: np.ndarray, length: int = CH
     return {"pairs_per_chain": int(length), **consistency_statistics(nees_rot, nees_tr, band=False)}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LinkedChains:
     """Chains of linked tracked pairs, composed (:func:`linked_chains`): the relative poses ``T``
     (M, 4, 4) and covariances ``C`` (M, 6, 6) from each chain's first frame to its last, and the
@@ -399,11 +399,10 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
             ev.not_computed, "without_reference_jitter",
             lambda: consistency_statistics(*relative_pose_nees(T_est, T_true, reported)), no_pairs)
 
-    linked: list[LinkedChains] = []  # composed once, for the chains' NEES and for reference_axes
+    composed = cache(partial(linked_chains, steps, gt, jitter=jitter))  # once, for the chains and reference_axes
 
     def chains():
-        linked.append(linked_chains(steps, gt, jitter=jitter))
-        ev.chain_nees_rotation, ev.chain_nees_translation = linked[0].nees(gt)
+        ev.chain_nees_rotation, ev.chain_nees_translation = composed().nees(gt)
         return chain_statistics(ev.chain_nees_rotation, ev.chain_nees_translation)
 
     ev.chains = _computed(ev.not_computed, "chains", chains, no_pairs)
@@ -415,8 +414,7 @@ def evaluate_run(steps: Sequence[OdometryStep], seq, elapsed_s: float,
 
     ev.breakdown = _computed(ev.not_computed, "nees_breakdown", breakdown, no_pairs)
     ev.axes = _computed(ev.not_computed, "reference_axes",
-                        lambda: reference_axes(steps, gt, T_est, T_true, covs, jitter, linked[0] if linked else None),
-                        no_pairs)
+                        partial(reference_axes, steps, gt, T_est, T_true, covs, jitter, composed), no_pairs)
 
     def response():  # the statistics, and the points of the figure's panel
         fit = twist_change_response(T_est, T_true, covs, ref_stamps, cur_stamps)
@@ -451,7 +449,7 @@ AXES_OBSERVED_DEG = 2.0
 
 
 def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T_est: np.ndarray,
-                   T_true: np.ndarray, covs: np.ndarray, jitter=None, chains: LinkedChains | None = None) -> dict:
+                   T_true: np.ndarray, covs: np.ndarray, jitter=None, chains=None) -> dict:
     """``metrics.json``'s ``reference_axes``: the fixed rotation by which the reference's axes are
     turned against the estimates' (:func:`~covo_gtsam.reference_noise.axes_rotation` of the pairs
     ``T_est``, ``T_true`` with ``covs``, the reference's jitter in them), a rotation vector about the
@@ -459,16 +457,17 @@ def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T
     (the standard errors are scaled up by it where it exceeds 1), and the rotation ANEES of the
     chains (:func:`chain_nees`) against the reference turned back by it (fitted on the same pairs;
     None without a chain, or where a standard error exceeds :data:`AXES_OBSERVED_DEG`: the
-    rotation is not observed about every axis). ``chains``: the run's :func:`linked_chains` with
-    ``jitter``, if composed already. A check of the reference (a hand-eye rotation, a principal
-    point), not a correction: the reported covariances do not carry it."""
+    rotation is not observed about every axis). ``chains``, if given, returns the run's
+    :func:`linked_chains` with the same ``jitter`` (e.g. composed once for the run's chains too). A
+    check of the reference (a hand-eye rotation, a principal point), not a correction: the reported
+    covariances do not carry it."""
     fit = axes_rotation(T_est, T_true, covs)
     turned = None
     if np.all(np.rad2deg(fit["standard_error_rad"]) <= AXES_OBSERVED_DEG):
         D = axes_transform(fit["rotation_rad"])
         with contextlib.suppress(InputError):
-            chains = chains or linked_chains(steps, gt, jitter=jitter)
-            turned = anees(chains.nees({t: G @ D for t, G in gt.items()})[0])
+            linked = linked_chains(steps, gt, jitter=jitter) if chains is None else chains()
+            turned = anees(linked.nees({t: G @ D for t, G in gt.items()})[0])
     return {"rotation_vector_deg": np.rad2deg(fit["rotation_rad"]).tolist(),
             "standard_error_deg": np.rad2deg(fit["standard_error_rad"]).tolist(),
             "reduced_chi2": fit["reduced_chi2"], "pairs": fit["pairs"], "chains_anees_rotation": turned}

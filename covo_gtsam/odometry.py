@@ -431,6 +431,7 @@ class VisualOdometry(DeprecatedStepAccess):
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp, ref, pairs, gains)
         step.error_bases, b, shutter = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists,
                                                          dt, timestamp, r_cur, gains, step.depth_jump_s)
+        step.added_covariance = {}
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
@@ -449,6 +450,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if self._shutter_unmoved(step):
             # returned as estimated: its current frame's compensation may still miss half the twist's
             # change over the pair, the error the look-ahead takes out (the term's model at its own size)
+            step.added_covariance = {**step.added_covariance, "rolling_shutter": step.error_bases["rolling_shutter"]}
             step.covariance = step.covariance + step.error_bases["rolling_shutter"]
         Ad = self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
         self._candidate = self._provisional_pair(step, ref_step, Ad, shutter, compensation)
@@ -483,6 +485,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if np.any(xi):  # the drift per interval, for the run's report
             self._drift_moves += (float(np.linalg.norm(xi)) / k) ** 2, 1
         step.covariance = step.covariance + C
+        step.added_covariance = {**step.added_covariance, "depth_drift": C}
         return replace(res, pose=res.pose.compose(gtsam.Pose3.Expmap(xi)))
 
     def _since_last(self, T: gtsam.Pose3, ref_step: OdometryStep, timestamp: float
@@ -653,6 +656,7 @@ class VisualOdometry(DeprecatedStepAccess):
             step.relative, Ad = restamp(res.pose, shift_ref, r_cur * step.stamp_twist)
             step.covariance = Ad @ step.covariance @ Ad.T
             step.error_bases = {k: Ad @ B @ Ad.T for k, B in step.error_bases.items()}
+            step.added_covariance = {k: Ad @ C @ Ad.T for k, C in step.added_covariance.items()}
         step.result = res
         step.pose = ref_step.pose.compose(step.relative)
         step.pose_covariance = compose_covariance(ref_step.pose, ref_step.pose_covariance, step.relative,
@@ -715,8 +719,10 @@ class VisualOdometry(DeprecatedStepAccess):
             move = prov.restamp @ S @ (compensation[0] - used)
             pair.relative = pair.relative.compose(gtsam.Pose3.Expmap(move))
             pair.pose = prov.ref_step.pose.compose(pair.relative)
-            if self._shutter_unmoved(pair):  # the move made: its error's term as the settled pairs' fit has it
-                pair.covariance = pair.covariance - pair.error_bases["rolling_shutter"]
+            if "rolling_shutter" in pair.added_covariance:  # the move made: its term as the settled pairs' fit has it
+                added = dict(pair.added_covariance)
+                pair.covariance = pair.covariance - added.pop("rolling_shutter")
+                pair.added_covariance = added
         if prov.twist_before is not None:
             B = central_change_basis(prov.motion.matrix(), prov.twist_before, step.velocity, prov.noise_before,
                                      span.noise)

@@ -86,6 +86,7 @@ class OdometryStep:
     stamp_shift: float | None = field(default=None, repr=False)
     #: the change (s) of the colour-depth capture offset from the reference frame in whole depth
     #: periods: the two depth images were read that far apart (the ``depth_jump`` term); 0 for most pairs
+    #: (set for every pair the odometry matched, lost ones too)
     depth_jump_s: float = field(default=0.0, repr=False)
     #: False while registering the next frame may still revise ``covariance``, ``pose_covariance``
     #: and ``error_bases["latency"]`` (``sensor.latency_look_ahead``: the latency term is then taken
@@ -99,6 +100,11 @@ class OdometryStep:
     clock_offset: float = 0.0
     clock_samples: int = 0
     error_bases: dict | None = field(default=None, repr=False)
+    #: what the odometry added to ``covariance`` besides the per-point model and the sensor terms
+    #: (name -> 6x6, in ``covariance``'s frame): ``depth_drift``, the depth-drift correction's own
+    #: uncertainty, and ``rolling_shutter``, that term's model once more while the look-ahead has
+    #: not moved the pose (:attr:`settled`; every pair in keyframe mode or without the look-ahead)
+    added_covariance: dict | None = field(default=None, repr=False)
     result: RelativePoseResult | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -127,8 +133,9 @@ class StepHistory:
 
     Given the run's ``sensor`` settings, it also records what each pair's covariance is made of,
     before the bases are dropped: ``variance_parts``, one entry per step, None for a step without a
-    relative pose or flagged by the integrity check, else ``(names, variances)``, the sensor terms'
-    names (:meth:`~covo_gtsam.config.SensorConfig.sensor_terms`) and their rotation and translation
+    relative pose or flagged by the integrity check, else ``(names, variances)``, the names of the
+    sensor terms (:meth:`~covo_gtsam.config.SensorConfig.sensor_terms`, with what the odometry
+    added to each, :attr:`OdometryStep.added_covariance`) and their rotation and translation
     variance (len(names) + 1, 2) (the trace of each 3x3 block, rad^2 and m^2), the last row that of
     the whole covariance (:func:`covo_gtsam.evaluation.covariance_parts` summarises them).
 
@@ -155,16 +162,20 @@ class StepHistory:
         return step
 
     def _slim(self, step: OdometryStep) -> OdometryStep:
-        return dataclasses.replace(step, result=None, error_bases=step.error_bases if self.keep_error_bases else None)
+        keep = self.keep_error_bases
+        return dataclasses.replace(step, result=None, error_bases=step.error_bases if keep else None,
+                                   added_covariance=step.added_covariance if keep else None)
 
     def _variance_parts(self, step: OdometryStep) -> tuple[tuple[str, ...], np.ndarray] | None:
         if (self.sensor is None or not step.has_relative_pose or step.flagged or step.covariance is None
-                or step.error_bases is None or step.ref_timestamp is None):
+                or step.error_bases is None):
             return None
         try:
             terms = self.sensor.sensor_terms(step.timestamp - step.ref_timestamp, step.error_bases)
         except InputError:  # an interval no camera has (the odometry refuses such pairs)
             return None
+        for name, C in (step.added_covariance or {}).items():
+            terms[name] = terms.get(name, 0.0) + C
         return tuple(terms), block_traces(np.array([*terms.values(), step.covariance]))
 
     def __len__(self) -> int:

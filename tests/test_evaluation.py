@@ -382,9 +382,11 @@ def test_docs_metrics_md_names_every_key_metrics_json_writes(sample_run):
 
 def test_covariance_parts_are_each_terms_share_of_each_block():
     """What each pair's covariance is made of, as the history records it before the bases are
-    dropped: for covariances built as known parts (points, frame term, a latency term) the mean
-    shares are known. A pair over two intervals takes the frame term twice, a flagged pair and
-    steps without a relative pose do not count, and a step the next frame settles counts as settled."""
+    dropped: for covariances built as known parts (points, frame term, a latency term, what the
+    odometry added) the mean shares are known. A pair over two intervals takes the frame term's
+    rotation variance twice and its translation variance four times; a flagged pair and steps
+    without a relative pose do not count; a step the next frame settles (its covariance and
+    latency basis revised) counts as settled; a part only some pairs have counts 0 in the others."""
     import gtsam
 
     from covo_gtsam.config import SensorConfig
@@ -394,30 +396,41 @@ def test_covariance_parts_are_each_terms_share_of_each_block():
 
     sensor = SensorConfig(frame_sigma_rot_deg=0.1, frame_sigma_trans_m=0.002, latency_sigma_s=0.01)
     r2, t2 = np.deg2rad(0.1) ** 2, 0.002**2
+    unit = np.diag([r2] * 3 + [t2] * 3)
     dt = sensor.frame_interval_s
-    B = np.diag([r2, r2, r2, t2, t2, t2]) / 0.01**2  # the latency term sigma^2 B: r2 and t2 per axis
+    B = unit / 0.01**2  # the latency term sigma^2 B: r2 and t2 per axis
 
-    def pair(k, intervals, points, flagged=False, settled=True):
+    def pair(k, intervals, points, flagged=False, settled=True, added=None):
+        added = added or {}
         return OdometryStep(k * dt, "tracked", ref_timestamp=(k - intervals) * dt, relative=gtsam.Pose3(),
-                            covariance=sensor.frame_noise(intervals * dt) + 0.01**2 * B + points,
-                            flagged=flagged, settled=settled, error_bases={"latency": B})
+                            covariance=sensor.frame_noise(intervals * dt) + 0.01**2 * B + points + sum(added.values()),
+                            flagged=flagged, settled=settled, error_bases={"latency": B}, added_covariance=added)
 
     history = StepHistory(sensor=sensor)  # the bases are dropped from the steps kept
     history.add(OdometryStep(0.0, "first"))
-    history.add(pair(1, 1, np.diag([2 * r2] * 3 + [2 * t2] * 3)))  # shares 1/4, 1/4, 1/2 in both blocks
+    history.add(pair(1, 1, 2 * unit))  # shares 1/4, 1/4, 1/2 in both blocks
     unsettled = history.add(pair(3, 2, np.diag([r2] * 3 + [0.0] * 3), settled=False))
-    unsettled.covariance = unsettled.covariance + np.diag([r2] * 3 + [t2] * 3)  # as the next frame settles it
-    history.add(pair(4, 1, np.diag([50 * r2] * 3 + [50 * t2] * 3), flagged=True))
-    history.add(OdometryStep(5 * dt, "lost", reason="too few matches"))
-    assert history[1].error_bases is None and history.variance_parts[0] is None
+    # as the next frame settles it: the latency basis doubled, the covariance with it, one r2 + t2 more of points
+    unsettled.error_bases = {"latency": 2 * B}
+    unsettled.covariance = unsettled.covariance + 0.01**2 * B + unit
+    history.add(pair(4, 1, 50 * unit, flagged=True))
+    history.add(pair(5, 1, 0 * unit, added={"depth_drift": 2 * unit}))  # 1/4, 1/4, drift 1/2, points 0
+    history.add(OdometryStep(6 * dt, "lost", reason="too few matches"))
+    assert history[1].error_bases is None and history[1].added_covariance is None
+    assert history.variance_parts[0] is None and history.variance_parts[3] is None
     out = covariance_parts(history.variance_parts)
-    # settled two-interval pair: rotation 2 r2 (frame) + r2 (latency) + 2 r2 (points) -> 2/5, 1/5, 2/5;
-    # translation 4 t2 (frame, k^2) + t2 + t2 -> 4/6, 1/6, 1/6
-    assert out["pairs"] == 2
-    assert out["rotation"] == pytest.approx({"frame_term": (1 / 4 + 2 / 5) / 2, "latency": (1 / 4 + 1 / 5) / 2,
-                                             "points": (1 / 2 + 2 / 5) / 2})
-    assert out["translation"] == pytest.approx({"frame_term": (1 / 4 + 4 / 6) / 2, "latency": (1 / 4 + 1 / 6) / 2,
-                                                "points": (1 / 2 + 1 / 6) / 2})
+    # the settled two-interval pair: rotation 2 r2 (frame) + 2 r2 (latency) + 2 r2 (points) -> 1/3 each;
+    # translation 4 t2 (frame, k^2) + 2 t2 + t2 -> 4/7, 2/7, 1/7
+    assert out["pairs"] == 3
+    assert out["rotation"] == pytest.approx({"frame_term": (1 / 4 + 1 / 3 + 1 / 4) / 3,
+                                             "latency": (1 / 4 + 1 / 3 + 1 / 4) / 3,
+                                             "depth_drift": (0 + 0 + 1 / 2) / 3, "points": (1 / 2 + 1 / 3 + 0) / 3})
+    assert out["translation"] == pytest.approx({"frame_term": (1 / 4 + 4 / 7 + 1 / 4) / 3,
+                                                "latency": (1 / 4 + 2 / 7 + 1 / 4) / 3,
+                                                "depth_drift": (0 + 0 + 1 / 2) / 3,
+                                                "points": (1 / 2 + 1 / 7 + 0) / 3})
+    for block in ("rotation", "translation"):
+        assert sum(out[block].values()) == pytest.approx(1.0)
     # a term whose sigma is 0 is no part; nothing recorded without the sensor or without such a pair
     off = StepHistory(sensor=SensorConfig(frame_sigma_rot_deg=0.1, frame_sigma_trans_m=0.002, latency_sigma_s=0.0))
     off.add(pair(1, 1, np.zeros((6, 6))))
@@ -425,3 +438,39 @@ def test_covariance_parts_are_each_terms_share_of_each_block():
     plain = StepHistory()
     plain.add(pair(1, 1, np.zeros((6, 6))))
     assert plain.variance_parts == [None] and covariance_parts(plain.variance_parts) is None
+
+
+@pytest.mark.parametrize("settings", [{}, {"tracking": {"keyframes": True}},
+                                      {"sensor": {"rolling_shutter_look_ahead": False}}],
+                         ids=["default", "keyframes", "no look-ahead"])
+def test_covariance_parts_points_are_the_per_point_model_on_real_frames(sample_dir, settings):
+    """On real frames, whatever the odometry adds to a pair's covariance besides the per-point model
+    is counted in a sensor part, not in ``points``: the ``points`` share of each pair equals that of
+    ``kappa`` times the estimator's own covariance (``step.result``), taken from the steps as
+    returned (in keyframe mode and without the look-ahead every pair keeps the rolling-shutter
+    model once more; the pose's restamp moves the per-point part too, hence the tolerance)."""
+    from covo_gtsam.config import OdometryConfig
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.evaluation import covariance_parts
+    from covo_gtsam.metrics import block_shares
+    from covo_gtsam.odometry import VisualOdometry
+    from covo_gtsam.steps import StepHistory
+
+    seq = TumSequence(sample_dir)
+    cfg = OdometryConfig().replace(**settings)
+    vo = VisualOdometry(seq.camera, cfg)
+    history, steps = StepHistory(sensor=cfg.sensor), []
+    for i in range(16):
+        colour, depth = seq.load(i)
+        steps.append(history.add(vo.register_frame(colour, depth, seq.timestamps[i],
+                                                   depth_timestamp=seq.depth_timestamps[i])))
+    out = covariance_parts(history.variance_parts)
+    kept = [s for s in steps if s.has_relative_pose and not s.flagged]
+    assert out["pairs"] == len(kept) >= 12
+    points = block_shares(np.array([cfg.sensor.correlation_factor * s.result.covariance for s in kept]),
+                          np.array([s.covariance for s in kept])).mean(axis=0)
+    assert [out["rotation"]["points"], out["translation"]["points"]] == pytest.approx(points, abs=0.01)
+    assert out["rotation"]["rolling_shutter"] > 0.1  # the share that was once hidden in points
+    for block in ("rotation", "translation"):
+        assert sum(out[block].values()) == pytest.approx(1.0)
+        assert all(0.0 <= v <= 1.0 for v in out[block].values())
