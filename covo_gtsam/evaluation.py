@@ -250,6 +250,9 @@ class RunEvaluation:
     #: what the reported covariances are made of (:func:`covariance_parts`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
     covariance_parts: dict | None = None
+    #: the same per pair (:func:`part_shares`): the parts' names, the pairs' stamps (s) and shares
+    #: (M, len(names), 2), for the figure
+    part_shares: tuple[list[str], np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     #: the camera the run used (intrinsics, distortion, image size, depth scale), set by the pipeline
     camera: dict | None = None
     #: the covo-gtsam version that made the run, set by the pipeline
@@ -473,26 +476,36 @@ def reference_axes(steps: Sequence[OdometryStep], gt: dict[float, np.ndarray], T
             "reduced_chi2": fit["reduced_chi2"], "pairs": fit["pairs"], "chains_anees_rotation": turned}
 
 
+def part_shares(variance_parts: Sequence[tuple[tuple[str, ...], np.ndarray] | None]
+                ) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The parts' names (the sensor terms in order of appearance, then ``points``), the indices
+    (M,) of the entries of ``variance_parts`` (a :class:`~covo_gtsam.steps.StepHistory`'s) that
+    hold a pair, and each pair's share (M, len(names), 2) of its rotation and translation variance
+    that each part is: a part a pair lacks is 0, ``points`` the rest (see :func:`covariance_parts`)."""
+    index = [i for i, v in enumerate(variance_parts) if v is not None]
+    names = list(dict.fromkeys(name for i in index for name in variance_parts[i][0]))
+    shares = np.zeros((len(index), len(names) + 1, 2))
+    for row, i in enumerate(index):
+        terms, traces = variance_parts[i]
+        shares[row, [names.index(name) for name in terms]] = traces[:-1] / traces[-1]
+    shares[:, -1] = 1.0 - shares[:, :-1].sum(axis=1)
+    return [*names, "points"], np.array(index, dtype=int), shares
+
+
 def covariance_parts(variance_parts: Sequence[tuple[tuple[str, ...], np.ndarray] | None]) -> dict | None:
     """``metrics.json``'s ``covariance_parts``: over the pairs a
     :class:`~covo_gtsam.steps.StepHistory` recorded (``variance_parts``: with a relative pose, not
     flagged), the mean share of the reported ``rotation`` and ``translation`` variance (the trace of
-    each 3x3 block) that each sensor term is (``frame_term``, the frame-level terms by name) and
-    ``points``, the rest: the per-point model's (times kappa) with the depth-drift correction's
-    uncertainty, and for a pair the rolling-shutter look-ahead did not move, that term's model once
-    more. Each block's shares sum to 1. With the ``pairs`` counted; None without a pair."""
-    recorded = [v for v in variance_parts if v is not None]
-    if not recorded:
+    each 3x3 block) that each part is: each sensor term (``frame_term``, the frame-level terms by
+    name, with what the odometry added to them), ``depth_drift`` and ``points``, the rest, the
+    per-point model's (times kappa). Each block's shares sum to 1. With the ``pairs`` counted; None
+    without a pair."""
+    names, index, shares = part_shares(variance_parts)
+    if not index.size:
         return None
-    names = list(dict.fromkeys(name for terms, _ in recorded for name in terms))
-    shares = np.zeros((len(recorded), len(names) + 1, 2))
-    for i, (terms, traces) in enumerate(recorded):
-        shares[i, [names.index(name) for name in terms]] = traces[:-1] / traces[-1]
-    shares[:, -1] = 1.0 - shares[:, :-1].sum(axis=1)
     mean = shares.mean(axis=0)
-    keys = [*names, "points"]
-    return {"rotation": dict(zip(keys, map(float, mean[:, 0]))),
-            "translation": dict(zip(keys, map(float, mean[:, 1]))), "pairs": len(recorded)}
+    return {"rotation": dict(zip(names, map(float, mean[:, 0]))),
+            "translation": dict(zip(names, map(float, mean[:, 1]))), "pairs": int(index.size)}
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -83,7 +83,7 @@ def ellipse_xy(ax, center: np.ndarray, cov2: np.ndarray, nsigma: float = 3.0, **
     ax.plot(pts[:, 0], pts[:, 1], **kw)
 
 
-RUN_PLOTS = ("trajectory.png", "nees.png", "nees_motion.png", "rpe.png")
+RUN_PLOTS = ("trajectory.png", "nees.png", "nees_motion.png", "rpe.png", "covariance.png")
 SIMULATION_PLOTS = ("nees.png", "errors_bounds.png")
 
 
@@ -205,7 +205,31 @@ def plot_run(steps: Sequence, evaluation, out_dir: Path) -> list[Path] | None:
             ax.grid(True, alpha=0.3)
         fig.suptitle(f"relative pose error, {evaluation.sequence}")
         written.append(save_figure(fig, out_dir / "rpe.png"))
+
+    if evaluation.part_shares is not None and evaluation.part_shares[1].size:
+        fig, axes = plt.subplots(1, 2, figsize=(13, 4.2), sharex=True)
+        covariance_parts_panels(axes, *evaluation.part_shares)
+        fig.suptitle(f"what each pair's covariance is made of, {evaluation.sequence}")
+        written.append(save_figure(fig, out_dir / "covariance.png"))
     return written
+
+
+def covariance_parts_panels(axes, names: Sequence[str], stamps: np.ndarray, shares: np.ndarray) -> None:
+    """Stacked shares of each pair's rotation and translation variance (one panel each) that each
+    part of its covariance is (:func:`~covo_gtsam.evaluation.part_shares`), over the pairs' time;
+    parts below 1 % everywhere are left out (the stack then stops short of 1 by them)."""
+    t = stamps - stamps[0]
+    shown = [k for k in range(len(names)) if shares[:, k].max() >= 0.01]
+    for b, (ax, block) in enumerate(zip(axes, ("rotation", "translation"))):
+        ax.stackplot(t, *(np.clip(shares[:, k, b], 0.0, 1.0) for k in shown),
+                     labels=[names[k] for k in shown], step="mid", alpha=0.85)
+        ax.set_xlim(t[0], max(t[-1], t[0] + 1e-3))
+        ax.set_ylim(0.0, 1.0)
+        ax.set_xlabel("time of the pair's current frame [s]")
+        ax.set_ylabel(f"share of the {block} variance")
+        ax.set_title(block)
+        ax.grid(True, alpha=0.3)
+    axes[1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
 
 
 def plot_simulation(result, out_dir: Path) -> list[Path] | None:
