@@ -5,7 +5,10 @@ frame pair, this one runs :class:`~covo_gtsam.odometry.VisualOdometry` over a se
 with the error sources of a real unsynchronised RGB-D camera, each with a stated parameter:
 
 * a hand-held motion: a rotation vector and a position that are sums of sines (angular speeds up
-  to ``max_angular_speed`` rad/s), frames captured on a regular clock of period ``period_s``;
+  to ``max_angular_speed`` rad/s), or a recorded one (``motion_file``, a TUM-format trajectory such
+  as a sequence's ``groundtruth.txt``, from ``motion_start_s`` on, smoothed over
+  ``motion_smooth_s``: :class:`RecordedMotion`); frames captured on a regular clock of period
+  ``period_s``;
 * timestamps off their capture by a white jitter of s.d. ``stamp_jitter_s`` (s), all of them
   ``stamp_latency_s`` (s) late (a driver's delay, which no stamp shows);
 * a rolling shutter: row ``v`` of a colour image is captured ``readout_s (v - H/2) / H`` after the
@@ -67,6 +70,12 @@ class SequenceSimulationConfig:
     bad_frame_offset_s: float = 0.1
     max_angular_speed: float = 2.0
     max_speed: float = 0.3
+    #: a recorded motion in place of the sines (TUM format: ``t tx ty tz qx qy qz qw``), the time
+    #: (s after its first sample) the simulated sequence starts at, and the s.d. (s) of the Gaussian
+    #: that smooths it (:class:`RecordedMotion`)
+    motion_file: str | None = None
+    motion_start_s: float = 0.0
+    motion_smooth_s: float = 0.02
 
     def odometry_defaults(self) -> OdometryConfig:
         """The package's default settings told this sensor's readout (``sensor.rolling_shutter_s``, a
@@ -189,6 +198,68 @@ class _Trajectory:
         return np.einsum("nji,nj->ni", R, Pw - s[:, 1])
 
 
+class RecordedMotion:
+    """A recorded camera motion T_world,cam(t) relative to its pose at ``start`` (s): the rotation
+    vector and the position smoothed with a Gaussian of s.d. ``smooth_s`` (s; takes out the
+    recording's own jitter, which a camera would not follow) and interpolated by cubic Hermite
+    splines (the velocity continuous); ``t`` in seconds from ``start``. The rotation must stay within
+    180 deg of the start's (a rotation vector per sample)."""
+
+    def __init__(self, stamps: np.ndarray, poses: np.ndarray, start: float = 0.0, smooth_s: float = 0.02) -> None:
+        order = np.argsort(stamps, kind="stable")
+        stamps, poses = np.asarray(stamps, dtype=float)[order], np.asarray(poses, dtype=float)[order]
+        if not (np.all(np.isfinite(stamps)) and np.all(np.isfinite(poses))):
+            raise ValueError("the recorded motion's stamps and poses must be finite")
+        i0 = int(np.searchsorted(stamps, stamps[0] + start))
+        if i0 >= len(stamps) - 4:
+            raise ValueError(f"the recorded motion ends before {start} s")
+        rel = np.linalg.inv(poses[i0]) @ poses
+        self.t = stamps - stamps[i0]
+        w = np.array([gtsam.Rot3.Logmap(gtsam.Rot3(R)) for R in rel[:, :3, :3]])
+        if np.any(np.linalg.norm(np.diff(w, axis=0), axis=1) > 1.0):
+            raise ValueError("the recorded motion turns beyond 180 deg from its start (its rotation vector wraps)")
+        x = np.concatenate([w, rel[:, :3, 3]], axis=1)
+        if smooth_s > 0:  # on the samples' median spacing
+            sd = smooth_s / np.median(np.diff(self.t))
+            k = np.arange(-int(4 * sd) - 1, int(4 * sd) + 2)
+            g = np.exp(-0.5 * (k / sd) ** 2)
+            padded = np.pad(x, ((len(k) // 2, len(k) // 2), (0, 0)), mode="edge")
+            x = np.stack([np.convolve(padded[:, j], g / g.sum(), mode="valid") for j in range(6)], axis=1)
+        self.x = x
+        self.dx = np.gradient(x, self.t, axis=0)  # the tangents at the samples
+
+    @classmethod
+    def from_tum(cls, path: str, start: float = 0.0, smooth_s: float = 0.02) -> "RecordedMotion":
+        from .io import load_tum_trajectory
+
+        stamps, poses = load_tum_trajectory(path, skip_invalid=True)
+        return cls(stamps, poses, start, smooth_s)
+
+    @property
+    def duration(self) -> float:
+        """Seconds from the start to the recording's end."""
+        return float(self.t[-1])
+
+    def _state(self, t: np.ndarray) -> np.ndarray:
+        """Rotation vector and position (N, 6) at times ``t`` (N,), cubic Hermite between samples."""
+        t = np.asarray(t, dtype=float)
+        i = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 2)
+        h = self.t[i + 1] - self.t[i]
+        u = ((t - self.t[i]) / h)[:, None]
+        h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+        return (h00 * self.x[i] + h10 * h[:, None] * self.dx[i] + h01 * self.x[i + 1]
+                + h11 * h[:, None] * self.dx[i + 1])
+
+    def pose(self, t: float) -> gtsam.Pose3:
+        s = self._state(np.array([t]))[0]
+        return gtsam.Pose3(gtsam.Rot3.Expmap(s[:3]), s[3:])
+
+    def in_camera(self, Pw: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """World points (N, 3) in the camera frame at their times ``t`` (N,)."""
+        s = self._state(t)
+        return np.einsum("nji,nj->ni", _rodrigues(s[:, :3]), Pw - s[:, 3:])
+
+
 def _rodrigues(w: np.ndarray) -> np.ndarray:
     """Rotation matrices (N, 3, 3) of rotation vectors (N, 3) (the exponential map of SO(3))."""
     theta = np.linalg.norm(w, axis=1)
@@ -247,6 +318,11 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     rng = np.random.default_rng(cfg.seed)
     camera = Camera.preset(cfg.camera)
     traj = _Trajectory(rng, cfg.max_angular_speed, cfg.max_speed)
+    if cfg.motion_file is not None:  # (the sines drawn all the same, so the other draws stay those of a run)
+        traj = RecordedMotion.from_tum(cfg.motion_file, cfg.motion_start_s, cfg.motion_smooth_s)
+        if (cfg.frames + 1) * cfg.period_s > traj.duration:
+            raise ValueError(f"{cfg.motion_file}: {cfg.frames} frames from {cfg.motion_start_s} s need "
+                             f"{(cfg.frames + 1) * cfg.period_s:.2f} s of motion, it has {traj.duration:.2f} s")
     Pw = _world_points(rng, cfg.points)
     descriptors = rng.integers(0, 256, size=(len(Pw), DESCRIPTOR_BYTES), dtype=np.uint8)
     noise = odometry.noise_model()
