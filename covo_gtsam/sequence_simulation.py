@@ -26,7 +26,8 @@ with the error sources of a real unsynchronised RGB-D camera, each with a stated
 * bad frames at rate ``bad_frame_rate``: their depth image belongs to an instant
   ``bad_frame_offset_s`` away (a depth image that was delivered with the wrong colour image).
 
-The scene is a cloud of static points in front of the start pose; each point has a fixed random
+The scene is a cloud of static points in front of the start pose (within ``scene_half_angle_deg``
+of its optical axis, 1-4 m away); each point has a fixed random
 descriptor, so matching is exact and what is measured is the estimator and its covariance. The
 truth for a pair is the camera motion between the two frames' *stamps*, as a back end or the TUM
 benchmark's ground truth sees it. Everything is drawn from ``seed``.
@@ -55,6 +56,9 @@ class SequenceSimulationConfig:
     seed: int = 0
     camera: str = "fr3"  # no lens distortion
     points: int = 4000
+    #: the scene's points lie within this angle (deg) of the start's optical axis (180: all around,
+    #: for a motion that turns far)
+    scene_half_angle_deg: float = 70.0
     period_s: float = 1.0 / 30.0
     stamp_jitter_s: float = 0.002
     stamp_latency_s: float = 0.0
@@ -271,12 +275,14 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + st * K + (1 - ct) * (K @ K)
 
 
-def _world_points(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Points 1-4 m from the start, within 70 deg of its optical axis (+z)."""
+def _world_points(rng: np.random.Generator, n: int, half_angle_deg: float = 70.0) -> np.ndarray:
+    """Points 1-4 m from the start, within ``half_angle_deg`` of its optical axis (+z): of ``n``
+    directions drawn over the half sphere in front (over the whole sphere beyond 90 deg), those inside."""
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    d[:, 2] = np.abs(d[:, 2])
-    keep = d[:, 2] > np.cos(np.deg2rad(70))
+    if half_angle_deg <= 90.0:
+        d[:, 2] = np.abs(d[:, 2])
+    keep = d[:, 2] >= np.cos(np.deg2rad(half_angle_deg))
     d = d[keep]
     return d * rng.uniform(1.0, 4.0, size=(len(d), 1))
 
@@ -323,7 +329,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         if (cfg.frames + 1) * cfg.period_s > traj.duration:
             raise ValueError(f"{cfg.motion_file}: {cfg.frames} frames from {cfg.motion_start_s} s need "
                              f"{(cfg.frames + 1) * cfg.period_s:.2f} s of motion, it has {traj.duration:.2f} s")
-    Pw = _world_points(rng, cfg.points)
+    Pw = _world_points(rng, cfg.points, cfg.scene_half_angle_deg)
     descriptors = rng.integers(0, 256, size=(len(Pw), DESCRIPTOR_BYTES), dtype=np.uint8)
     noise = odometry.noise_model()
     vo = VisualOdometry(camera, odometry)
