@@ -214,6 +214,13 @@ def plot_run(steps: Sequence, evaluation, out_dir: Path) -> list[Path] | None:
     return written
 
 
+def plt_colour(i: int):
+    """The ``i``-th of 20 distinct colours (matplotlib's tab20, the dark shades first)."""
+    import matplotlib
+
+    return matplotlib.colormaps["tab20"](2 * i % 20 + (2 * i // 20) % 2)
+
+
 def covariance_parts_panels(axes, names: Sequence[str], stamps: np.ndarray, shares: np.ndarray) -> None:
     """Stacked shares of each pair's rotation and translation variance (one panel each) that each
     part of its covariance is (:func:`~covo_gtsam.evaluation.part_shares`), over the pairs' time;
@@ -221,8 +228,8 @@ def covariance_parts_panels(axes, names: Sequence[str], stamps: np.ndarray, shar
     t = stamps - stamps[0]
     shown = [k for k in range(len(names)) if shares[:, k].max() >= 0.01]
     for b, (ax, block) in enumerate(zip(axes, ("rotation", "translation"))):
-        ax.stackplot(t, *(np.clip(shares[:, k, b], 0.0, 1.0) for k in shown),
-                     labels=[names[k] for k in shown], step="mid", alpha=0.85)
+        ax.stackplot(t, *(np.clip(shares[:, k, b], 0.0, 1.0) for k in shown), labels=[names[k] for k in shown],
+                     colors=[plt_colour(i) for i in range(len(shown))], step="mid", alpha=0.85)
         ax.set_xlim(t[0], max(t[-1], t[0] + 1e-3))
         ax.set_ylim(0.0, 1.0)
         ax.set_xlabel("time of the pair's current frame [s]")

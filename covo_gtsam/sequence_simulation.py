@@ -44,6 +44,7 @@ from .camera import Camera
 from .frontend import DESCRIPTOR_BYTES, Features, FrameData
 from .metrics import nees, relative_pose_tangent_errors
 from .config import OdometryConfig
+from .errors import InputError
 from .odometry import VisualOdometry
 from .pipeline import stacked_bases
 
@@ -203,34 +204,46 @@ class _Trajectory:
 
 
 class RecordedMotion:
-    """A recorded camera motion T_world,cam(t) relative to its pose at ``start`` (s): the rotation
-    vector and the position smoothed with a Gaussian of s.d. ``smooth_s`` (s; takes out the
-    recording's own jitter, which a camera would not follow) and interpolated by cubic Hermite
-    splines (the velocity continuous); ``t`` in seconds from ``start``. The rotation must stay within
-    180 deg of the start's (a rotation vector per sample)."""
+    """A recorded camera motion T_world,cam(t), relative to the recorded pose at the first sample at
+    or after ``start`` (s after the recording's first sample), ``t`` in seconds from that sample.
+
+    The rotation vector and the position are resampled evenly at the recording's median spacing
+    (linearly, also across a gap: ``gaps`` lists the times (s) where one begins, samples more than
+    three spacings apart), smoothed with a Gaussian of s.d. ``smooth_s`` (s; it takes out the
+    recording's own jitter, which a camera would not follow; odd reflection at the ends, so that a
+    steady motion passes unchanged) and interpolated by cubic Hermite splines (the velocity
+    continuous). A time outside the recording is an :class:`InputError`, as is a rotation that
+    turns beyond 180 deg from the start's (its rotation vector would wrap)."""
 
     def __init__(self, stamps: np.ndarray, poses: np.ndarray, start: float = 0.0, smooth_s: float = 0.02) -> None:
-        order = np.argsort(stamps, kind="stable")
-        stamps, poses = np.asarray(stamps, dtype=float)[order], np.asarray(poses, dtype=float)[order]
+        stamps, poses = np.asarray(stamps, dtype=float), np.asarray(poses, dtype=float)
         if not (np.all(np.isfinite(stamps)) and np.all(np.isfinite(poses))):
-            raise ValueError("the recorded motion's stamps and poses must be finite")
+            raise InputError("the recorded motion's stamps and poses must be finite")
+        order = np.argsort(stamps, kind="stable")
+        stamps, poses = stamps[order], poses[order]
+        if np.any(np.diff(stamps) <= 0):
+            raise InputError("the recorded motion's stamps must differ (one pose per stamp)")
         i0 = int(np.searchsorted(stamps, stamps[0] + start))
         if i0 >= len(stamps) - 4:
-            raise ValueError(f"the recorded motion ends before {start} s")
+            raise InputError(f"the recorded motion ends before {start} s")
         rel = np.linalg.inv(poses[i0]) @ poses
-        self.t = stamps - stamps[i0]
+        t_raw = stamps - stamps[i0]
         w = np.array([gtsam.Rot3.Logmap(gtsam.Rot3(R)) for R in rel[:, :3, :3]])
         if np.any(np.linalg.norm(np.diff(w, axis=0), axis=1) > 1.0):
-            raise ValueError("the recorded motion turns beyond 180 deg from its start (its rotation vector wraps)")
-        x = np.concatenate([w, rel[:, :3, 3]], axis=1)
-        if smooth_s > 0:  # on the samples' median spacing
-            sd = smooth_s / np.median(np.diff(self.t))
-            k = np.arange(-int(4 * sd) - 1, int(4 * sd) + 2)
+            raise InputError("the recorded motion turns beyond 180 deg from its start (its rotation vector wraps)")
+        x_raw = np.concatenate([w, rel[:, :3, 3]], axis=1)
+        h = float(np.median(np.diff(t_raw)))
+        self.gaps = t_raw[:-1][np.diff(t_raw) > 3 * h]
+        self.t = t_raw[0] + h * np.arange(int(np.floor((t_raw[-1] - t_raw[0]) / h + 1e-6)) + 1)
+        x = np.stack([np.interp(self.t, t_raw, x_raw[:, j]) for j in range(6)], axis=1)
+        if smooth_s > 0:
+            sd = smooth_s / h
+            k = np.arange(-int(np.ceil(4 * sd)), int(np.ceil(4 * sd)) + 1)
             g = np.exp(-0.5 * (k / sd) ** 2)
-            padded = np.pad(x, ((len(k) // 2, len(k) // 2), (0, 0)), mode="edge")
+            padded = np.pad(x, ((k[-1], k[-1]), (0, 0)), mode="reflect", reflect_type="odd")
             x = np.stack([np.convolve(padded[:, j], g / g.sum(), mode="valid") for j in range(6)], axis=1)
         self.x = x
-        self.dx = np.gradient(x, self.t, axis=0)  # the tangents at the samples
+        self.dx = np.gradient(x, h, axis=0)  # the tangents at the samples
 
     @classmethod
     def from_tum(cls, path: str, start: float = 0.0, smooth_s: float = 0.02) -> "RecordedMotion":
@@ -240,13 +253,16 @@ class RecordedMotion:
         return cls(stamps, poses, start, smooth_s)
 
     @property
-    def duration(self) -> float:
-        """Seconds from the start to the recording's end."""
-        return float(self.t[-1])
+    def span(self) -> tuple[float, float]:
+        """The first and last time (s) the motion is known at."""
+        return float(self.t[0]), float(self.t[-1])
 
     def _state(self, t: np.ndarray) -> np.ndarray:
         """Rotation vector and position (N, 6) at times ``t`` (N,), cubic Hermite between samples."""
         t = np.asarray(t, dtype=float)
+        if np.any(t < self.t[0] - 1e-9) or np.any(t > self.t[-1] + 1e-9):
+            raise InputError(f"the recorded motion is known from {self.t[0]:.3f} to {self.t[-1]:.3f} s, "
+                             f"asked at {t.min():.3f} to {t.max():.3f} s")
         i = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, len(self.t) - 2)
         h = self.t[i + 1] - self.t[i]
         u = ((t - self.t[i]) / h)[:, None]
@@ -326,9 +342,16 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     traj = _Trajectory(rng, cfg.max_angular_speed, cfg.max_speed)
     if cfg.motion_file is not None:  # (the sines drawn all the same, so the other draws stay those of a run)
         traj = RecordedMotion.from_tum(cfg.motion_file, cfg.motion_start_s, cfg.motion_smooth_s)
-        if (cfg.frames + 1) * cfg.period_s > traj.duration:
-            raise ValueError(f"{cfg.motion_file}: {cfg.frames} frames from {cfg.motion_start_s} s need "
-                             f"{(cfg.frames + 1) * cfg.period_s:.2f} s of motion, it has {traj.duration:.2f} s")
+        # every instant a frame may be looked at: its rows, its stamp, its depth image (a bad frame's too)
+        reach = (cfg.readout_s / 2 + cfg.stamp_latency_s + 5 * cfg.stamp_jitter_s + max(cfg.depth_offset_s)
+                 + (cfg.bad_frame_offset_s if cfg.bad_frame_rate > 0 else 0.0) + (cfg.depth_period_s or 0.0)
+                 + cfg.period_s)
+        need = (-reach, (cfg.frames - 1) * cfg.period_s + reach)
+        have = traj.span
+        if need[0] < have[0] or need[1] > have[1]:
+            raise InputError(f"{cfg.motion_file}: {cfg.frames} frames from {cfg.motion_start_s} s need the motion from "
+                             f"{need[0]:.2f} to {need[1]:.2f} s around that start; it is known from {have[0]:.2f} "
+                             f"to {have[1]:.2f} s")
     Pw = _world_points(rng, cfg.points, cfg.scene_half_angle_deg)
     descriptors = rng.integers(0, 256, size=(len(Pw), DESCRIPTOR_BYTES), dtype=np.uint8)
     noise = odometry.noise_model()

@@ -103,7 +103,8 @@ class OdometryStep:
     #: what the odometry added to ``covariance`` besides the per-point model and the sensor terms
     #: (name -> 6x6, in ``covariance``'s frame): ``depth_drift``, the depth-drift correction's own
     #: uncertainty, and ``rolling_shutter``, that term's model once more while the look-ahead has
-    #: not moved the pose (:attr:`settled`; every pair in keyframe mode or without the look-ahead)
+    #: not moved the pose (:attr:`settled`; every pair in keyframe mode or without the look-ahead);
+    #: not what the integrity check adds to a flagged pair's
     added_covariance: dict | None = field(default=None, repr=False)
     result: RelativePoseResult | None = field(default=None, repr=False)
 
@@ -168,7 +169,7 @@ class StepHistory:
 
     def _variance_parts(self, step: OdometryStep) -> tuple[tuple[str, ...], np.ndarray] | None:
         if (self.sensor is None or not step.has_relative_pose or step.flagged or step.covariance is None
-                or step.error_bases is None):
+                or step.error_bases is None or step.ref_timestamp is None):
             return None
         try:
             terms = self.sensor.sensor_terms(step.timestamp - step.ref_timestamp, step.error_bases)
