@@ -567,7 +567,84 @@ def speed_term_table(data: Path) -> list[str]:
         cells = [f"{nr[m].mean():.2f} ({m.sum()})" for m in ((speed >= lo) & (speed < hi)
                                                             for lo, hi in zip(edges[:-1], edges[1:]))]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    return lines + [""] + twist_change_lines(rpy) + frame_term_lines(rpy)
+    return lines + [""] + twist_change_lines(rpy) + frame_term_lines(rpy) + jerk_lines(data, rpy)
+
+
+def second_change_basis(p: dict, T: np.ndarray, history: int | None) -> np.ndarray:
+    """Per pair (N, 6, 6), rotation block: the outer product of the second difference of the pairs'
+    mean angular velocities from poses ``T`` (N, 4, 4), ``d = w_(k+1) - 2 w_k + w_(k-1)`` (rad/s),
+    centred on the pair (one frame late, as the latency term's look-ahead): the pair's own
+    (``history`` None; the reference's, exact but for its jitter) or the mean over the ``history``
+    pairs before it, less the run's own noise (the per-point model's ``N_(k+1) + 4 N_k + N_(k-1)``),
+    clipped to positive semidefinite (the run's own, as the latency term's history)."""
+    n, dt = len(T), p["t_cur"] - p["t_ref"]
+    follows = np.r_[False, p["end"][1:] == p["end"][:-1] + 1]
+    w = se3_log(T)[:, :3] / dt[:, None]
+    noise = p["cov"][:, :3, :3] / dt[:, None, None] ** 2
+    out, recent = np.zeros((n, 6, 6)), []
+    for k in range(n):
+        inner = 1 <= k < n - 1 and follows[k] and follows[k + 1]
+        if inner:
+            d = w[k + 1] - 2 * w[k] + w[k - 1]
+            own = np.outer(d, d)
+        if history is None:
+            out[k, :3, :3] = own if inner else 0.0
+            continue
+        if recent:
+            ev, V = np.linalg.eigh(np.mean(recent, axis=0))
+            out[k, :3, :3] = (V * np.clip(ev, 0.0, None)) @ V.T
+        if inner:
+            recent = (recent + [own - noise[k + 1] - 4 * noise[k] - noise[k - 1]])[-history:]
+        elif not follows[k]:
+            recent = []
+    return out
+
+
+def jerk_lines(data: Path, rpy: dict) -> list[str]:
+    """The default terms with one more, ``sigma^2 d d^T`` on the second difference ``d`` of the pairs'
+    angular velocities (:func:`second_change_basis`), from the reference (raw, or smoothed over 20 and
+    35 ms: :class:`~covo_gtsam.sequence_simulation.RecordedMotion`) or from the run's own twists;
+    fitted on one half of fr1_rpy and checked on the other."""
+    from covo_gtsam.calibration import log_likelihood
+    from covo_gtsam.sequence_simulation import RecordedMotion
+
+    stamps, poses = TumSequence(data / "tum" / RPY).gt_samples
+    sources: dict[str, np.ndarray | None] = {"none (the default terms)": None,
+                                             "the reference's, the pair's own": second_change_basis(
+                                                 rpy, rpy["T_true"], None)}
+    for smooth in (0.02, 0.035):
+        motion = RecordedMotion(stamps, poses, smooth_s=smooth)
+        at = {t: motion.pose(t - stamps[0]).matrix() for t in np.unique(np.r_[rpy["t_ref"], rpy["t_cur"]])}
+        T = np.array([np.linalg.inv(at[a]) @ at[b] for a, b in zip(rpy["t_ref"], rpy["t_cur"])])
+        sources[f"the reference smoothed over {1e3 * smooth:.0f} ms, the pair's own"] = second_change_basis(
+            rpy, T, None)
+    sources["the run's own, the pair's"] = second_change_basis(rpy, rpy["T_est"], None)
+    sources["the run's own, the 10 pairs before, less their noise"] = second_change_basis(rpy, rpy["T_est"], 10)
+    lines = ["## The frame term and the change of the angular acceleration", "",
+             "The default terms with one more, `sigma^2 d d^T` (rotation block) on the second difference `d` of "
+             "the pairs' mean angular velocities centred on the pair (the change of the angular acceleration over "
+             "a frame interval, times dt^2), fitted on one half of fr1_rpy and checked on the other. The "
+             "realistic simulation driven by fr1_rpy's recorded motion finds the compensated readout's error "
+             "growing with it (docs/recorded_motion.md). From the reference, `d` carries the reference's jitter, "
+             "which is in the pairs' errors too; smoothed over 20 ms (the motion up to about 8 Hz kept) or 35 ms "
+             "(about 4.5 Hz) less of it.", "",
+             "| d from | fitted on | frame term (deg) | sigma (ms) | checked on | ANEES t / r | log-likelihood "
+             "held out |", "|---|---|---|---|---|---|---|"]
+    halves = {"A": rpy["end"] <= 119, "B": rpy["end"] >= 120}
+    for label, J in sources.items():
+        p = rpy if J is None else {**rpy, "bases": {**rpy["bases"], "jerk": J}}
+        terms = list(DEFAULT_TERMS) + ([] if J is None else ["jerk"])
+        for name, m in halves.items():
+            train = subset(p, m & p["fit_ok"])
+            fit = fit_sensor_terms(train["err"], train["cov"], False, bases={t: train["bases"][t] for t in terms},
+                                   fixed=train["fixed"])
+            held = subset(p, ~m)
+            covs = fit.covariances(held["cov"], {t: held["bases"][t] for t in terms}) + held["fixed"]
+            nt, nr = anees_cells(held["err"], covs)
+            lines.append(f"| {label} | {name} | {fit.frame_sigma_rot_deg:.3f} | "
+                         f"{1e3 * fit.sigmas.get('jerk', 0.0):.2f} | {'B' if name == 'A' else 'A'} | "
+                         f"{nt.mean():.2f} / {nr.mean():.2f} | {log_likelihood(held['err'], covs):.3f} |")
+    return lines + [""]
 
 
 def frame_term_lines(p: dict) -> list[str]:
