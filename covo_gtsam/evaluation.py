@@ -22,8 +22,7 @@ from .datasets.tum import MAX_GT_COORDINATE, usable_poses
 from .errors import InputError
 from .geometry import invert_pose
 from .integrity import below_majority
-from .metrics import (anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees,
-                      rpe_statistics)
+from .metrics import anees, ate_errors, ate_statistics, relative_pose_errors, relative_pose_nees, rpe_statistics
 from .nees_breakdown import nees_breakdown
 from .odometry import OdometryStep
 from .reference_noise import (
@@ -247,11 +246,10 @@ class RunEvaluation:
     #: what the run learnt about its sensor (:meth:`VisualOdometry.self_calibration`), set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
     self_calibration: dict | None = None
-    #: what the reported covariances are made of (:func:`covariance_parts`), set by
+    #: what each pair's reported covariance is made of (:func:`part_shares`): the parts' names, the
+    #: pairs' stamps (s) and shares (M, len(names), 2); ``metrics.json``'s ``covariance_parts`` is
+    #: their mean (:func:`mean_shares`), the figure draws them; set by
     #: :func:`~covo_gtsam.pipeline.run_sequence`
-    covariance_parts: dict | None = None
-    #: the same per pair (:func:`part_shares`): the parts' names, the pairs' stamps (s) and shares
-    #: (M, len(names), 2), for the figure
     part_shares: tuple[list[str], np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     #: the camera the run used (intrinsics, distortion, image size, depth scale), set by the pipeline
     camera: dict | None = None
@@ -322,8 +320,8 @@ class RunEvaluation:
         out["without_reference_jitter"] = self.without_reference_jitter
         if self.self_calibration is not None:
             out["self_calibration"] = self.self_calibration
-        if self.covariance_parts is not None:
-            out["covariance_parts"] = self.covariance_parts
+        if self.part_shares is not None and self.part_shares[2].size:
+            out["covariance_parts"] = mean_shares(self.part_shares[0], self.part_shares[2])
         if self.camera is not None:
             out["camera"] = self.camera
         if self.version is not None:
@@ -501,11 +499,15 @@ def covariance_parts(variance_parts: Sequence[tuple[tuple[str, ...], np.ndarray]
     per-point model's (times kappa). Each block's shares sum to 1. With the ``pairs`` counted; None
     without a pair."""
     names, index, shares = part_shares(variance_parts)
-    if not index.size:
-        return None
+    return mean_shares(names, shares) if index.size else None
+
+
+def mean_shares(names: Sequence[str], shares: np.ndarray) -> dict:
+    """The mean over the pairs of :func:`part_shares`' ``shares`` (M, len(names), 2), by block and
+    part, with the ``pairs`` counted: ``metrics.json``'s ``covariance_parts``."""
     mean = shares.mean(axis=0)
     return {"rotation": dict(zip(names, map(float, mean[:, 0]))),
-            "translation": dict(zip(names, map(float, mean[:, 1]))), "pairs": int(index.size)}
+            "translation": dict(zip(names, map(float, mean[:, 1]))), "pairs": len(shares)}
 
 
 def reference_statistics(samples: tuple[np.ndarray, np.ndarray]) -> dict:

@@ -415,11 +415,10 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
         bar.close()
     elapsed = time.perf_counter() - start
 
-    from .evaluation import covariance_parts, evaluate_run, part_shares
+    from .evaluation import evaluate_run, part_shares
 
     evaluation = evaluate_run(history.steps, seq, elapsed)
     evaluation.self_calibration = vo.self_calibration()
-    evaluation.covariance_parts = covariance_parts(history.variance_parts)
     names, index, shares = part_shares(history.variance_parts)
     evaluation.part_shares = names, np.array([history[i].timestamp for i in index]), shares
     cam = vo.camera

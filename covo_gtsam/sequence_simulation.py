@@ -180,7 +180,24 @@ class SequenceSimulationResult:
         return float(np.isin(np.flatnonzero(good), self.lost_frames).mean()) if good.any() else float("nan")
 
 
-class _Trajectory:
+class _Motion:
+    """A camera motion T_world,cam(t) given as its rotation vector and position at each time
+    (``_state``, (N, 6)), which :meth:`pose` and :meth:`in_camera` read."""
+
+    def _state(self, t: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def pose(self, t: float) -> gtsam.Pose3:
+        s = self._state(np.array([t]))[0]
+        return gtsam.Pose3(gtsam.Rot3.Expmap(s[:3]), s[3:])
+
+    def in_camera(self, Pw: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """World points (N, 3) in the camera frame at their times ``t`` (N,)."""
+        s = self._state(t)
+        return np.einsum("nji,nj->ni", _rodrigues(s[:, :3]), Pw - s[:, 3:])
+
+
+class _Trajectory(_Motion):
     """Smooth camera motion T_world,cam(t): sums of three sines per axis."""
 
     def __init__(self, rng: np.random.Generator, max_angular_speed: float, max_speed: float) -> None:
@@ -192,18 +209,13 @@ class _Trajectory:
             a = rng.uniform(0.5, 1.0, size=(3, 3))
             self.amp[i] = a * (vmax / np.sqrt(3)) / (a * self.f[i]).sum(axis=1, keepdims=True)
 
-    def pose(self, t: float) -> gtsam.Pose3:
-        s = (self.amp * np.sin(self.f * t + self.phase)).sum(axis=2)
-        return gtsam.Pose3(gtsam.Rot3.Expmap(s[0]), s[1])
-
-    def in_camera(self, Pw: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """World points (N, 3) in the camera frame at their times ``t`` (N,)."""
-        s = (self.amp[None] * np.sin(self.f[None] * np.asarray(t)[:, None, None, None] + self.phase[None])).sum(axis=3)
-        R = _rodrigues(s[:, 0])
-        return np.einsum("nji,nj->ni", R, Pw - s[:, 1])
+    def _state(self, t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        s = (self.amp[None] * np.sin(self.f[None] * t[:, None, None, None] + self.phase[None])).sum(axis=3)
+        return s.reshape(len(t), 6)
 
 
-class RecordedMotion:
+class RecordedMotion(_Motion):
     """A recorded camera motion T_world,cam(t), relative to the recorded pose at the first sample at
     or after ``start`` (s after the recording's first sample), ``t`` in seconds from that sample.
 
@@ -269,15 +281,6 @@ class RecordedMotion:
         h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
         return (h00 * self.x[i] + h10 * h[:, None] * self.dx[i] + h01 * self.x[i + 1]
                 + h11 * h[:, None] * self.dx[i + 1])
-
-    def pose(self, t: float) -> gtsam.Pose3:
-        s = self._state(np.array([t]))[0]
-        return gtsam.Pose3(gtsam.Rot3.Expmap(s[:3]), s[3:])
-
-    def in_camera(self, Pw: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """World points (N, 3) in the camera frame at their times ``t`` (N,)."""
-        s = self._state(t)
-        return np.einsum("nji,nj->ni", _rodrigues(s[:, :3]), Pw - s[:, 3:])
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +51,12 @@ def simulate(data: Path, seed: int, smooth_s: float = 0.02, **sensor):
     return simulate_sequence(cfg, odometry)
 
 
+@cache
+def recording_gaps(path: str, start: float) -> np.ndarray:
+    """The gaps of the recorded motion (:attr:`RecordedMotion.gaps`), read once per file."""
+    return RecordedMotion.from_tum(path, start, 0.0).gaps
+
+
 def usable(q) -> np.ndarray:
     """The kept consecutive pairs without a bad frame, with a consecutive pair before and after them
     (not a run's or a segment's first pair, whose terms lean on priors), neither frame within
@@ -57,7 +64,7 @@ def usable(q) -> np.ndarray:
     f = q.frames
     inner = np.zeros(len(f), bool)
     inner[1:-1] = (f[:-2, 1] == f[1:-1, 0]) & (f[2:, 0] == f[1:-1, 1])
-    gaps = RecordedMotion.from_tum(q.config.motion_file, q.config.motion_start_s, q.config.motion_smooth_s).gaps
+    gaps = recording_gaps(q.config.motion_file, q.config.motion_start_s)
     t = f * q.config.period_s
     near = np.zeros(len(f), bool)
     for g in gaps:
