@@ -52,6 +52,21 @@ def _no_relative_pose(frames: int, tracked_frames: int, relative_poses: int) -> 
     return frames > 1 and tracked_frames > 0 and relative_poses == 0
 
 
+def _gyroscope(args: argparse.Namespace):
+    """``--gyro FILE`` and its settings as a :class:`~covo_gtsam.gyro.Gyroscope` (None without it)."""
+    told = [name for name in ("gyro_rotation",) if getattr(args, name) is not None]
+    told += [name for name, default in (("gyro_time_offset", 0.0), ("gyro_noise", 0.005))
+             if getattr(args, name) != default]
+    if args.gyro is None:
+        if told:
+            raise ConfigError(f"--{told[0].replace('_', '-')} needs --gyro FILE")
+        return None
+    from .gyro import Gyroscope
+
+    return Gyroscope.from_file(args.gyro, rotation=args.gyro_rotation, time_offset_s=args.gyro_time_offset,
+                               noise_rad_s=args.gyro_noise)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .pipeline import check_output_dir, run_sequence
 
@@ -66,10 +81,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         from .ros_io import require_rosbags
 
         require_rosbags()
+    gyro = _gyroscope(args)
     check_output_dir(args.out)
     result = run_sequence(
         seq, args.out, config=config, max_frames=args.max_frames, plots=not args.no_plots, progress=not args.quiet,
-        bag_out=args.bag_out,
+        bag_out=args.bag_out, gyro=gyro,
     )
     m = result.metrics
     fps = m["frames_per_second"]

@@ -58,6 +58,21 @@ def _float_in(minimum: float | None = None, maximum: float | None = None):
     return parse
 
 
+def _number_in(minimum: float, maximum: float):
+    """argparse type: a finite number in ``[minimum, maximum]`` (zero and negative ones included)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number in [{minimum:g}, {maximum:g}], got {text!r}") from None
+        if not (math.isfinite(value) and minimum <= value <= maximum):
+            raise argparse.ArgumentTypeError(f"expected a number in [{minimum:g}, {maximum:g}], got {value:g}")
+        return value
+
+    return parse
+
+
 def _setting(cls, name: str):
     """argparse type of the declared setting ``name`` of the settings class ``cls``: its range as
     declared (:mod:`covo_gtsam.validation`)."""
@@ -176,6 +191,18 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     run.add_argument("--scale", type=_setting(EstimatorConfig, "scale"), metavar="PHI",
                      help="the thesis's covariance scale phi: multiplies each pair's point-transfer "
                      "covariance inside the estimator; the calibrated sensor terms are applied after (default 1)")
+    run.add_argument("--gyro", metavar="FILE",
+                     help="the camera's gyroscope: a text file of 't wx wy wz' lines (s on the frames' clock, rad/s), "
+                     "whose angular velocities (and their change) move the colour rows in place of the pairs' twists; "
+                     "metrics.json's gyro says how many pairs it covered")
+    run.add_argument("--gyro-rotation", type=float, nargs=4, metavar=("QX", "QY", "QZ", "QW"),
+                     help="with --gyro: the gyroscope's axes in the camera's optical frame (x right, y down, z forward), "
+                     "R_cam_gyro as a unit quaternion (default: the same axes)")
+    run.add_argument("--gyro-time-offset", type=_number_in(-1.0, 1.0), default=0.0, metavar="S",
+                     help="with --gyro: added to its stamps to put them on the frames' clock (default 0)")
+    run.add_argument("--gyro-noise", type=_number_in(0.0, 10.0), default=0.005, metavar="RAD_S",
+                     help="with --gyro: s.d. of one sample's error per axis, the compensation's remaining error in the "
+                     "covariance (default 0.005 rad/s)")
     run.add_argument("--bag-out", choices=["ros1", "ros2"],
                      help="also write the odometry as a ROS bag: OUT/odometry.bag (ros1) or OUT/odometry/ (ros2) "
                      "with /covo/odometry (nav_msgs/Odometry) and /covo/relative (PoseWithCovarianceStamped)")

@@ -255,6 +255,8 @@ class RunEvaluation:
     camera: dict | None = None
     #: the covo-gtsam version that made the run, set by the pipeline
     version: str | None = None
+    #: the gyroscope the run was given (:meth:`~covo_gtsam.odometry.VisualOdometry.gyro_summary`), set by the pipeline
+    gyro: dict | None = None
     #: translational (m) and rotational (rad) RPE of each frame pair, per interval in frames
     rpe_errors: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
     #: position error (m) of each aligned frame, segments pooled
@@ -326,6 +328,8 @@ class RunEvaluation:
             out["camera"] = self.camera
         if self.version is not None:
             out["version"] = self.version
+        if self.gyro is not None:
+            out["gyro"] = self.gyro
         return copy.deepcopy(out)
 
 

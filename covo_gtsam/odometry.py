@@ -30,6 +30,7 @@ from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_cha
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
+from .gyro import ACCELERATION_SPAN_S, Gyroscope
 from .integrity import (MIN_CONSENSUS, IntegrityScale, below_majority, depth_free_check, depth_free_consensus,
                         per_span, reprojection_consensus)
 from .noise import blur_covariances, depth_lookup_variance
@@ -73,6 +74,20 @@ class _TwistSpan(NamedTuple):
     features: np.ndarray | None = None
     gains: np.ndarray | None = None
     cross: np.ndarray | None = None
+
+
+class _Compensation(NamedTuple):
+    """What a pair's two frames' rows were moved to their times with: the twists (6,) at the
+    reference and the current frame, and the two frames' angular accelerations (3,) where a
+    gyroscope measured both frames' angular velocities (None: the twists are the pairs')."""
+
+    twist_ref: np.ndarray
+    twist_cur: np.ndarray
+    accelerations: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def measured(self) -> bool:
+        return self.accelerations is not None
 
 
 class _Provisional(NamedTuple):
@@ -143,13 +158,21 @@ class VisualOdometry(DeprecatedStepAccess):
     >>> step = vo.register_frame(colour, depth_raw, timestamp)   # doctest: +SKIP
     """
 
-    def __init__(self, camera: Camera | str, config: OdometryConfig | None = None) -> None:
+    def __init__(self, camera: Camera | str, config: OdometryConfig | None = None,
+                 gyro: Gyroscope | None = None) -> None:
         """``camera``: a :class:`Camera` or a preset name (``"fr1"``). Raises :class:`ConfigError`
         for anything else, a ``config`` that is not an :class:`OdometryConfig`, or front-end
-        settings that do not fit the camera's image size (:meth:`FrontendConfig.check_image_size`)."""
+        settings that do not fit the camera's image size (:meth:`FrontendConfig.check_image_size`).
+        ``gyro``: the camera's gyroscope (:class:`~covo_gtsam.gyro.Gyroscope`, on the frames'
+        clock), whose angular velocities the rolling-shutter compensation takes where its samples
+        cover both frames of a pair."""
         self.camera = Camera.resolve(camera)
         if config is not None and not isinstance(config, OdometryConfig):
             raise ConfigError(f"config must be an OdometryConfig (see OdometryConfig.from_dict), got {config!r}")
+        if gyro is not None and not isinstance(gyro, Gyroscope):
+            raise ConfigError(f"gyro must be a covo_gtsam.gyro.Gyroscope, got {type(gyro).__name__}")
+        self.gyro = gyro
+        self._gyro_pairs = 0  # pairs compensated with the gyroscope's angular velocities
         self.config = config or OdometryConfig()
         self.config.frontend.check_image_size(self.camera.width, self.camera.height)
         self._orb_local = threading.local()  # one ORB detector per thread (see prepare)
@@ -415,8 +438,9 @@ class VisualOdometry(DeprecatedStepAccess):
         # time between the two captures: the stamps' difference corrected by the frame clock
         dt, r_ref, r_cur = self._capture_interval(ref_step, timestamp)
         try:
+            captures = (ref_step.timestamp - r_ref, timestamp - (r_cur or 0.0))
             res, X_ref, X_cur, pairs, compensation = self._solve_pair(ref, ref_step, frame, pairs, dt, timestamp,
-                                                                      step.depth_jump_s)
+                                                                      step.depth_jump_s, captures)
         except (EstimationError, InputError) as exc:  # InputError: e.g. points moved beyond range by compensation
             step.reason = str(exc)
             return step
@@ -430,13 +454,18 @@ class VisualOdometry(DeprecatedStepAccess):
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp, ref, pairs, gains)
         step.error_bases, b, shutter = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists,
-                                                         dt, timestamp, r_cur, gains, step.depth_jump_s)
+                                                         dt, timestamp, r_cur, gains, step.depth_jump_s,
+                                                         compensation)
         step.added_covariance = {}
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
             step.reason = str(exc)
             return step
+        if compensation is not None and compensation.measured:  # the gyroscope's own error, in place of the term
+            C = self._gyro_covariance(gains, X_ref, X_cur, pairs)
+            step.added_covariance["gyro"] = C
+            step.covariance = step.covariance + C
         if not _positive_definite(step.covariance):  # no information a back end could use
             step.reason = "the pair's covariance is not finite and positive definite"
             return step
@@ -542,9 +571,8 @@ class VisualOdometry(DeprecatedStepAccess):
         return twist_ref, twist_cur
 
     def _solve_pair(self, ref: FrameData, ref_step: OdometryStep, frame: FrameData, pairs: PointPairs, dt: float,
-                    timestamp: float, jump: float
-                    ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray, PointPairs,
-                               tuple[np.ndarray, np.ndarray] | None]:
+                    timestamp: float, jump: float, captures: tuple[float, float]
+                    ) -> tuple[RelativePoseResult, np.ndarray, np.ndarray, PointPairs, _Compensation | None]:
         """``(result, X_ref, X_cur, pairs, compensation)``: the pair's relative pose. With motion (``dt > 0``) the
         points are moved to their frames' timestamps (rolling shutter, depth time) and get the
         depth-lookup variance of the colour-depth offsets, both from the camera's twists at the two
@@ -552,8 +580,9 @@ class VisualOdometry(DeprecatedStepAccess):
         solved once. Without such a pose (e.g. ``outlier_rejection = "none"`` and no prediction)
         the pair is solved on the unmoved points, the twists are taken from that solution and it is
         solved again. The points and pairs returned are those of the last solve; ``compensation``
-        the twists (6,) the reference's and the current frame's points were moved with (None when
-        not moved). ``jump`` is the pair's depth-period jump (s, :meth:`_depth_jump`)."""
+        what the reference's and the current frame's points were moved with (None when not moved;
+        :meth:`_gyro_compensation`). ``jump`` is the pair's depth-period jump (s, :meth:`_depth_jump`);
+        ``captures`` the two frames' capture times on the stamps' clock (s)."""
         X_ref, X_cur = pairs.X_ref, pairs.X_cur
         initial = None if pairs.T_init is None else gtsam.Pose3(pairs.T_init)
         compensate = dt > 0 and (
@@ -564,12 +593,45 @@ class VisualOdometry(DeprecatedStepAccess):
             initial = self._solve(X_ref, X_cur, pairs, None).pose
         compensation = None
         if compensate:
-            twist_ref, twist_cur = self._frame_twists(initial, dt, ref_step, timestamp)
-            compensation = (twist_ref, twist_cur)
+            compensation = self._gyro_compensation(*self._frame_twists(initial, dt, ref_step, timestamp), captures)
+            twist_ref, twist_cur, accelerations = compensation
+            accel_ref, accel_cur = accelerations or (None, None)
             pairs = self._with_motion_noise(pairs, ref, frame, twist_ref, twist_cur, jump)
-            X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref)
-            X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur)
+            X_ref = self._to_frame_time(ref, pairs.X_ref, pairs.uv_ref, twist_ref, accel_ref)
+            X_cur = self._to_frame_time(frame, pairs.X_cur, pairs.uv_cur, twist_cur, accel_cur)
         return self._solve(X_ref, X_cur, pairs, initial), X_ref, X_cur, pairs, compensation
+
+    def _gyro_compensation(self, twist_ref: np.ndarray, twist_cur: np.ndarray, captures: tuple[float, float]
+                           ) -> _Compensation:
+        """The twists a pair's rows are moved with: the pairs' (:meth:`_frame_twists`), their
+        angular velocities replaced by the gyroscope's at the two captures, with its angular
+        accelerations, where its samples cover both frames' readouts (else the pairs' alone)."""
+        gyro, readout = self.gyro, self.config.sensor.rolling_shutter_s
+        margin = 0.5 * readout + 0.5 * ACCELERATION_SPAN_S
+        if gyro is None or readout <= 0 or not all(gyro.covers(t, margin) for t in captures):
+            return _Compensation(twist_ref, twist_cur)
+        twists = [np.concatenate([gyro.angular_velocity(t), np.asarray(tw, dtype=float)[3:]])
+                  for tw, t in zip((twist_ref, twist_cur), captures)]
+        return _Compensation(*twists, tuple(gyro.angular_acceleration(t) for t in captures))
+
+    def _gyro_covariance(self, gains: tuple[np.ndarray, np.ndarray], X_ref: np.ndarray, X_cur: np.ndarray,
+                         pairs: PointPairs) -> np.ndarray:
+        """The pose's covariance (6x6) from the gyroscope's error at each frame of a pair whose rows it
+        compensated: each frame's response to an error of its angular velocity under one sample's noise."""
+        N = np.zeros((6, 6))
+        N[:3, :3] = self.gyro.twist_noise()
+        C = np.zeros((6, 6))
+        for G, X, uv in ((gains[0], X_ref, pairs.uv_ref), (gains[1], X_cur, pairs.uv_cur)):
+            B = self._shutter_response(G, X, uv)
+            C += B @ N @ B.T
+        self._gyro_pairs += 1
+        return C
+
+    def _shutter_response(self, G: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """A frame's points' response (6x6) of the estimate to an error of the twist its rows were
+        moved with (:func:`~covo_gtsam.frame_errors.rolling_shutter_basis`)."""
+        readout, height = self.config.sensor.rolling_shutter_s, self.camera.height
+        return rolling_shutter_basis(G, X, row_time_offsets(uv[:, 1], height, readout))
 
     def _with_motion_noise(self, pairs: PointPairs, ref: FrameData, frame: FrameData, twist_ref: np.ndarray,
                            twist_cur: np.ndarray, jump: float) -> PointPairs:
@@ -679,7 +741,8 @@ class VisualOdometry(DeprecatedStepAccess):
             return None
         twist_before = noise_before = None
         before = self._twist_noise.get(ref_step.timestamp)
-        if sensor.latency_look_ahead and before is not None and before.intervals == span.intervals:
+        measured = compensation is not None and compensation.measured  # (its latency basis measured already)
+        if sensor.latency_look_ahead and before is not None and before.intervals == span.intervals and not measured:
             trusted = _trusted_velocity(ref_step)
             if trusted is not None:
                 twist_before, noise_before = np.asarray(trusted, dtype=float), before.noise
@@ -740,7 +803,7 @@ class VisualOdometry(DeprecatedStepAccess):
         its return until that move is made (a pair never moved, e.g. a run's last, keeps it). The
         term's fitted factor (``sensor.rolling_shutter_factor``) is that of the moved pairs."""
         return (self.config.sensor.rolling_shutter_factor > 0 and step.error_bases is not None
-                and "rolling_shutter" in step.error_bases)
+                and "rolling_shutter" in step.error_bases and bool(np.any(step.error_bases["rolling_shutter"])))
 
     def _add_twist_change(self, last: OdometryStep, step: OdometryStep) -> None:
         """The change of the twist from ``last``'s pair to ``step``'s into the latency term's history:
@@ -785,7 +848,7 @@ class VisualOdometry(DeprecatedStepAccess):
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
                      dt: float, timestamp: float, r_cur: float | None, gains: tuple[np.ndarray, np.ndarray],
-                     jump: float) -> tuple[dict, np.ndarray, np.ndarray | None]:
+                     jump: float, compensation: _Compensation | None = None) -> tuple[dict, np.ndarray, np.ndarray | None]:
         """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`), its
         response ``b`` (6,) to the current frame's depths scaled by ``1 + e`` (per unit ``e``) and
         its response (6x6) to an error of the current frame's rolling-shutter twist (None without
@@ -794,7 +857,11 @@ class VisualOdometry(DeprecatedStepAccess):
         (:func:`~covo_gtsam.rolling_shutter.frame_twists`), None without motion; ``r_cur`` the current
         frame's move to its stamp (:meth:`_capture_interval`); ``gains`` the estimate's response to
         each point of the reference and the current frame (:func:`~covo_gtsam.frame_errors.transfer_gains`);
-        ``jump`` the pair's depth-period jump (s, :meth:`_depth_jump`)."""
+        ``jump`` the pair's depth-period jump (s, :meth:`_depth_jump`); ``compensation`` what the rows
+        were moved with (:meth:`_solve_pair`). Where a gyroscope gave both frames' angular
+        velocities, the latency term's rotation basis is their change across the pair and the
+        rolling-shutter term is 0 (the compensation's error is the gyroscope's, :meth:`_gyro_covariance`)."""
+        gyro = compensation is not None and compensation.measured
         M = T.matrix()
         G_ref, G_cur = gains
         b_ref, b_cur = depth_scale_basis(G_ref, X_ref), depth_scale_basis(G_cur, X_cur)
@@ -822,6 +889,10 @@ class VisualOdometry(DeprecatedStepAccess):
             measured, m, m_ref = known  # m_ref: the intervals the keyframe's own twist was taken over
             change_cov = m**2 * history  # the current frame's twist was taken over these m intervals
             bases["latency"] = (k / max(k - m, 1)) ** 2 * measured + change_cov
+        if gyro:  # the change of the angular velocity across the pair, measured, and its noise at both frames
+            change = compensation.twist_cur[:3] - M[:3, :3].T @ compensation.twist_ref[:3]
+            bases["latency"] = np.zeros((6, 6))
+            bases["latency"][:3, :3] = np.outer(change, change) + 2.0 * self.gyro.twist_noise()
         # a frame's pose keeps its stamp's full jitter unless it was moved to its place on the frame
         # clock, and then the uncertainty of the clock's phase, fitted to n stamps: 1/n of the variance
         n_ref = ref_step.clock_samples if ref_step.stamp_shift is not None else 0
@@ -853,13 +924,12 @@ class VisualOdometry(DeprecatedStepAccess):
             # over; without a twist at the reference (a run's first pair) both frames' twists are
             # off by minus and plus half the change over the pair (a point keeps its row, so the
             # same error at both frames would nearly cancel)
-            readout, height = self.config.sensor.rolling_shutter_s, self.camera.height
-
-            def response(G, X, uv):  # of a frame's points to an error of its compensation's twist
-                return rolling_shutter_basis(G, X, row_time_offsets(uv[:, 1], height, readout))
-
+            response = self._shutter_response
             B = response(G_cur, X_cur, pairs.uv_cur)
-            if _trusted_velocity(ref_step) is None:
+            if gyro:
+                bases["rolling_shutter"] = np.zeros((6, 6))
+                shutter = B
+            elif _trusted_velocity(ref_step) is None:
                 D = B - response(G_ref, X_ref, pairs.uv_ref)
                 bases["rolling_shutter"] = 0.25 * D @ change_cov @ D.T
             else:
@@ -905,14 +975,17 @@ class VisualOdometry(DeprecatedStepAccess):
         B[:3, :3] = R @ B[:3, :3] @ R.T
         return B, self.config.sensor.frame_intervals(dt_last), span_ref.intervals
 
-    def _to_frame_time(self, fd: FrameData, X: np.ndarray, uv: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    def _to_frame_time(self, fd: FrameData, X: np.ndarray, uv: np.ndarray, twist: np.ndarray,
+                       acceleration: np.ndarray | None = None) -> np.ndarray:
         """A frame's points moved to its colour image's timestamp: the depths along their rays to
         the bearings' time (:func:`covo_gtsam.frame_errors.depth_time_shift`), then each row to the
-        timestamp (:func:`covo_gtsam.rolling_shutter.compensate_points`)."""
+        timestamp (:func:`covo_gtsam.rolling_shutter.compensate_points`; ``acceleration``, rad/s^2,
+        a gyroscope's)."""
         if self.config.sensor.depth_time_compensation and fd.depth_offset:
             X = depth_time_shift(X, twist, fd.depth_offset)
         if self.config.sensor.rolling_shutter_s > 0:
-            X = compensate_points(X, uv[:, 1], twist, self.camera.height, self.config.sensor.rolling_shutter_s)
+            X = compensate_points(X, uv[:, 1], twist, self.camera.height, self.config.sensor.rolling_shutter_s,
+                                  acceleration)
         return X
 
     def _solve(self, X_ref: np.ndarray, X_cur: np.ndarray, pairs, initial: gtsam.Pose3 | None) -> RelativePoseResult:
@@ -920,6 +993,15 @@ class VisualOdometry(DeprecatedStepAccess):
             X_ref, X_cur, pairs.Q_ref, pairs.Q_cur, weighting=self.config.estimator.weighting,
             scale=self.config.estimator.scale, robust=self.config.estimator.robust,
             variance_factor=self.config.estimator.variance_factor, initial=initial, reweight_tol=REWEIGHT_TOL_RAD)
+
+    def gyro_summary(self) -> dict | None:
+        """The gyroscope the run was given (None without one): its samples, their time span (s, on
+        the frames' clock), the noise it was taken with (rad/s per axis) and how many pairs it
+        compensated (both frames' readouts covered by its samples)."""
+        if self.gyro is None:
+            return None
+        return {"samples": len(self.gyro.stamps), "span_s": list(self.gyro.span), "noise_rad_s": self.gyro.noise_rad_s,
+                "pairs": self._gyro_pairs}
 
     def self_calibration(self) -> dict:
         """What the run learnt about its sensor without ground truth: the frame clock's period (s),

@@ -54,6 +54,7 @@ from .datasets.tum import TumSequence
 from .errors import ConfigError, CovoError, DatasetError, InputError
 from .frontend import FrameData
 from .g2o import G2oWriter
+from .gyro import Gyroscope
 from .interrupt import check as check_interrupt
 from .io import FolderLock, RelativePoseWriter, TrajectoryWriter, write_json, write_tum_trajectory
 from .odometry import EMPTY_DEPTH, OdometryStep, VisualOdometry
@@ -261,6 +262,7 @@ def run_sequence(
     progress: bool = True,
     keep_error_bases: bool = False,
     bag_out: str | None = None,
+    gyro: Gyroscope | None = None,
 ) -> RunResult:
     """Run :class:`VisualOdometry` over ``seq`` and write the results folder.
 
@@ -268,7 +270,9 @@ def run_sequence(
     or the path of a TUM folder or a ROS bag (read with the default topics), as ``covo run`` takes it.
     ``camera`` (a :class:`Camera` or preset name) overrides ``seq.camera``; ``max_frames`` (an
     integer >= 1, or None for all) limits the frames processed; ``bag_out`` (``"ros1"``,
-    ``"ros2"`` or None) also writes the odometry as a ROS bag.
+    ``"ros2"`` or None) also writes the odometry as a ROS bag; ``gyro`` is the camera's gyroscope
+    (:class:`~covo_gtsam.gyro.Gyroscope`), whose angular velocities the rolling-shutter
+    compensation takes.
 
     The folder is checked before the first frame (the files of :data:`RUN_FILES` and, with
     ``plots``, the figures of ``plots/`` must be writable) and the results of an earlier run of
@@ -293,7 +297,7 @@ def run_sequence(
     elif not hasattr(seq, "camera") or not hasattr(seq, "timestamps"):
         raise ConfigError(f"run_sequence needs a sequence (e.g. TumSequence) or its path, got {type(seq).__name__}")
     config = config or OdometryConfig()
-    vo = VisualOdometry(seq.camera if camera is None else camera, config)
+    vo = VisualOdometry(seq.camera if camera is None else camera, config, gyro=gyro)
     out = check_output_dir(out_dir)
     n = frame_count(seq, max_frames)
     with FolderLock(out):
@@ -426,6 +430,7 @@ def _run(vo: VisualOdometry, history: StepHistory, seq: TumSequence, out: Path, 
                          "distortion": list(cam.dist), "width": cam.width, "height": cam.height,
                          "depth_scale": config.sensor.depth_scale}
     evaluation.version = __version__
+    evaluation.gyro = vo.gyro_summary()
     metrics = evaluation.to_dict()
     write_json(out / "metrics.json", metrics)
     write_frame_ground_truth(out / "groundtruth_at_frames.txt", seq, n)

@@ -34,20 +34,27 @@ def row_time_offsets(v: np.ndarray, height: int, readout_s: float) -> np.ndarray
 
 
 def compensate_points(
-    X: np.ndarray, v: np.ndarray, twist: np.ndarray, height: int, readout_s: float
+    X: np.ndarray, v: np.ndarray, twist: np.ndarray, height: int, readout_s: float,
+    angular_acceleration: np.ndarray | None = None,
 ) -> np.ndarray:
     """Points (N, 3) moved from the camera frame at their row's capture time into the frame at
-    the image timestamp: ``X + δ (ω × X + v_lin)`` with ``δ`` from :func:`row_time_offsets`.
+    the image timestamp: ``X + δ (ω × X + v_lin)`` with ``δ`` from :func:`row_time_offsets`,
+    plus ``δ²/2 (α × X)`` with an angular acceleration ``α`` (the turn over ``δ`` is then
+    ``ω δ + α δ²/2``).
 
     Args:
         X: (N, 3) camera-frame points (metres), back-projected from pixel rows ``v`` (N,).
         twist: (6,) body twist ``[ω, v]`` of the camera at the image timestamp (rad/s, m/s).
         height: image height (pixels); readout_s: time from the top row to the bottom row (s).
+        angular_acceleration: (3,) rad/s^2 in the camera frame, or None (0).
     """
     X = np.asarray(X, dtype=float)
     twist = np.asarray(twist, dtype=float).reshape(6)
     d = row_time_offsets(v, height, readout_s)[:, None]
-    return X + d * (cross(twist[:3], X) + twist[3:])
+    turn = cross(twist[:3], X)
+    if angular_acceleration is not None:
+        turn = turn + (0.5 * d) * cross(np.asarray(angular_acceleration, dtype=float).reshape(3), X)
+    return X + d * (turn + twist[3:])
 
 
 def frame_twists(T_ref_cur: gtsam.Pose3, dt: float, ref_velocity: np.ndarray | None = None

@@ -24,7 +24,10 @@ with the error sources of a real unsynchronised RGB-D camera, each with a stated
   ``e ~ N(0, depth_scale_sigma^2)`` per frame, plus a drift ``depth_drift * sin(2 pi t /
   depth_drift_period_s + phase)`` (random phase; 0 by default) that carries the error over frames;
 * bad frames at rate ``bad_frame_rate``: their depth image belongs to an instant
-  ``bad_frame_offset_s`` away (a depth image that was delivered with the wrong colour image).
+  ``bad_frame_offset_s`` away (a depth image that was delivered with the wrong colour image);
+* with ``gyro_rate_hz`` > 0, a gyroscope in the camera's axes sampling the true angular velocity at
+  that rate with white noise of s.d. ``gyro_noise_rad_s`` per axis, stamped on the frames' clock
+  (as late as the frames' stamps), which the odometry is given.
 
 The scene is a cloud of static points in front of the start pose (within ``scene_half_angle_deg``
 of its optical axis, 1-4 m away); each point has a fixed random
@@ -45,6 +48,7 @@ from .frontend import DESCRIPTOR_BYTES, Features, FrameData
 from .metrics import nees, relative_pose_tangent_errors
 from .config import OdometryConfig
 from .errors import InputError
+from .gyro import Gyroscope
 from .odometry import VisualOdometry
 from .pipeline import stacked_bases
 
@@ -81,6 +85,8 @@ class SequenceSimulationConfig:
     motion_file: str | None = None
     motion_start_s: float = 0.0
     motion_smooth_s: float = 0.02
+    gyro_rate_hz: float = 0.0
+    gyro_noise_rad_s: float = 0.0
 
     def odometry_defaults(self) -> OdometryConfig:
         """The package's default settings told this sensor's readout (``sensor.rolling_shutter_s``, a
@@ -195,6 +201,13 @@ class _Motion:
         """World points (N, 3) in the camera frame at their times ``t`` (N,)."""
         s = self._state(t)
         return np.einsum("nji,nj->ni", _rodrigues(s[:, :3]), Pw - s[:, 3:])
+
+    def angular_velocity(self, t: np.ndarray, h: float = 1e-4) -> np.ndarray:
+        """The camera's body angular velocity (N, 3) at times ``t`` (N,) (rad/s, camera frame):
+        ``Log(R(t - h)^T R(t + h)) / 2h``."""
+        t = np.asarray(t, dtype=float)
+        R0, R1 = _rodrigues(self._state(t - h)[:, :3]), _rodrigues(self._state(t + h)[:, :3])
+        return np.array([gtsam.Rot3.Logmap(gtsam.Rot3(a.T @ b)) for a, b in zip(R0, R1)]) / (2 * h)
 
 
 class _Trajectory(_Motion):
@@ -358,7 +371,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
     Pw = _world_points(rng, cfg.points, cfg.scene_half_angle_deg)
     descriptors = rng.integers(0, 256, size=(len(Pw), DESCRIPTOR_BYTES), dtype=np.uint8)
     noise = odometry.noise_model()
-    vo = VisualOdometry(camera, odometry)
+    vo = VisualOdometry(camera, odometry, gyro=_gyroscope(cfg, traj))
 
     captures = np.arange(cfg.frames) * cfg.period_s
     stamp_offsets = cfg.stamp_latency_s + rng.normal(0.0, cfg.stamp_jitter_s, cfg.frames)
@@ -422,6 +435,18 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         frames=np.array(frames, int).reshape(-1, 2), bad_frames=bad, capture_truth=T_captures,
         stamp_errors=relative_pose_tangent_errors(T_captures, np.array(T_stamps).reshape(-1, 4, 4)),
         depth_offsets=np.array(stamped), self_calibration=vo.self_calibration())
+
+
+def _gyroscope(cfg: SequenceSimulationConfig, traj: _Motion) -> Gyroscope | None:
+    """The simulated gyroscope (``cfg.gyro_rate_hz``; None at 0): the true angular velocity sampled
+    from a frame period before the first frame to one after the last, plus white noise (its own
+    generator, so that the other draws stay those of a run without it), stamped as late as the frames."""
+    if cfg.gyro_rate_hz <= 0:
+        return None
+    t = np.arange(-cfg.period_s, cfg.frames * cfg.period_s, 1.0 / cfg.gyro_rate_hz)
+    noise = np.random.default_rng([cfg.seed, 2]).normal(0.0, cfg.gyro_noise_rad_s, (len(t), 3))
+    return Gyroscope(t + cfg.stamp_latency_s, traj.angular_velocity(t) + noise,
+                     noise_rad_s=max(cfg.gyro_noise_rad_s, 1e-4))
 
 
 def _depth_clock(rng: np.random.Generator, cfg: SequenceSimulationConfig, captures: np.ndarray,

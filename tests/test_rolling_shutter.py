@@ -135,7 +135,8 @@ def test_odometry_compensates_with_the_ransac_pose_in_one_solve(sample_dir, monk
             (X_ref, pairs, initial)) or solve(X_ref, X_cur, pairs, initial))
         pairs = associate_frames(ref, cur, vo.config.frontend)
         return pairs, vo._solve_pair(ref, ref_step, cur, pairs, seq.timestamps[1] - seq.timestamps[0],
-                                     seq.timestamps[1], vo._depth_jump(ref, cur)), calls
+                                     seq.timestamps[1], vo._depth_jump(ref, cur),
+                                     (seq.timestamps[0], seq.timestamps[1])), calls
 
     pairs, (_, X_ref, _, solved, _), calls = solve_pair("rigid3d")
     assert len(calls) == 1 and calls[0][2] is not None  # one solve, from the RANSAC's pose

@@ -1,0 +1,113 @@
+"""A gyroscope's angular velocities, for the rolling-shutter compensation.
+
+The compensation moves each row of a frame to the frame's time with the camera's angular velocity
+at that frame. Without a gyroscope that velocity is the mean of the two pairs' twists around the
+frame, which misses the motion's change within the two intervals (docs/derivation.md, "A
+gyroscope"); a gyroscope measures it at the frame, and its change over the readout too.
+
+Conventions: samples ``(t, ω_g)`` are stamped on the camera's clock (seconds; ``time_offset_s`` is
+added to them first) and give the body angular velocity in the gyroscope's own axes (rad/s).
+``rotation`` is ``R_cam_gyro``, the gyroscope's axes in the camera's optical frame (x right, y down,
+z forward), so ``ω_cam = R_cam_gyro ω_g``. Between samples the velocity is linear in time.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DatasetError, InputError
+from .geometry import quat_to_matrix
+
+#: the angular acceleration is the slope of the angular velocity over this span (s) around a time:
+#: wide enough to average a MEMS gyroscope's sample noise, short against a hand's motion
+ACCELERATION_SPAN_S = 0.01
+
+
+class Gyroscope:
+    """Angular velocities of the camera (rad/s, camera frame) from gyroscope samples.
+
+    Args:
+        stamps: (N,) sample times (s, camera clock before ``time_offset_s``), strictly increasing.
+        rates: (N, 3) angular velocities in the gyroscope's axes (rad/s).
+        rotation: ``R_cam_gyro`` (3, 3), or a quaternion ``(qx, qy, qz, qw)``; identity by default.
+        time_offset_s: added to ``stamps`` to put them on the camera's clock.
+        noise_rad_s: standard deviation of one sample's error per axis (rad/s), the error the
+            compensation is left with (its covariance term).
+    """
+
+    def __init__(self, stamps, rates, rotation=None, time_offset_s: float = 0.0, noise_rad_s: float = 0.005) -> None:
+        t = np.asarray(stamps, dtype=float).reshape(-1)
+        w = np.asarray(rates, dtype=float)
+        if w.shape != (len(t), 3):
+            raise InputError(f"gyroscope: {len(t)} stamps need rates of shape ({len(t)}, 3), got {w.shape}")
+        if len(t) < 2:
+            raise InputError(f"gyroscope: at least 2 samples are needed, got {len(t)}")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(w))):
+            raise InputError("gyroscope: stamps and rates must be finite")
+        if not np.all(np.diff(t) > 0):
+            i = int(np.flatnonzero(np.diff(t) <= 0)[0])
+            raise InputError(f"gyroscope: stamps must increase; sample {i + 1} ({t[i + 1]!r}) follows {t[i]!r}")
+        if not (np.isfinite(time_offset_s) and abs(time_offset_s) <= 1.0):
+            raise InputError(f"gyroscope: time_offset_s must be finite and within 1 s, got {time_offset_s!r}")
+        if not (np.isfinite(noise_rad_s) and noise_rad_s >= 0):
+            raise InputError(f"gyroscope: noise_rad_s must be finite and non-negative, got {noise_rad_s!r}")
+        R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
+        if R.shape == (4,):
+            if not (np.all(np.isfinite(R)) and np.linalg.norm(R) > 0.5):
+                raise InputError(f"gyroscope: the rotation quaternion (qx, qy, qz, qw) must be finite and unit, got {R}")
+            R = quat_to_matrix(R)
+        if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise InputError("gyroscope: rotation must be a rotation matrix (3, 3) or a quaternion (qx, qy, qz, qw)")
+        self.stamps = t + float(time_offset_s)
+        self.rates = w @ R.T  # camera axes
+        self.noise_rad_s = float(noise_rad_s)
+        self.max_gap_s = 0.05  # a sample is expected at least this often (s): a wider gap is no measurement
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, **kwargs) -> Gyroscope:
+        """Samples from a text file, one ``t wx wy wz`` per line (s, rad/s; ``#`` comments; the
+        layout of TUM RGB-D's ``accelerometer.txt``)."""
+        from .io import _load_rows
+
+        p = Path(path)
+        rows, _ = _load_rows(p, 4, "t wx wy wz")
+        if not len(rows):
+            raise DatasetError(f"{p}: no gyroscope samples")
+        try:
+            return cls(rows[:, 0], rows[:, 1:], **kwargs)
+        except InputError as exc:
+            raise DatasetError(f"{p}: {exc}") from None
+
+    @property
+    def span(self) -> tuple[float, float]:
+        return float(self.stamps[0]), float(self.stamps[-1])
+
+    def covers(self, t: float, margin: float = 0.0) -> bool:
+        """Whether samples surround ``t - margin`` to ``t + margin`` with no gap over :attr:`max_gap_s`."""
+        a, b = t - margin, t + margin
+        if not (self.stamps[0] <= a and b <= self.stamps[-1]):
+            return False
+        i, j = np.searchsorted(self.stamps, [a, b])
+        seg = self.stamps[max(i - 1, 0):min(j + 1, len(self.stamps))]
+        return bool(np.all(np.diff(seg) <= self.max_gap_s))
+
+    def angular_velocity(self, t: float) -> np.ndarray:
+        """The camera's angular velocity (3,) at ``t`` (rad/s, camera frame), linear between samples."""
+        return np.array([np.interp(t, self.stamps, self.rates[:, i]) for i in range(3)])
+
+    def angular_acceleration(self, t: float, span: float = ACCELERATION_SPAN_S) -> np.ndarray:
+        """The camera's angular acceleration (3,) at ``t`` (rad/s^2, camera frame): the slope of a
+        straight line fitted to the samples within ``span / 2`` of ``t`` (to the two around ``t``'s
+        ends where fewer lie there)."""
+        i, j = np.searchsorted(self.stamps, [t - 0.5 * span, t + 0.5 * span])
+        i, j = max(min(i, len(self.stamps) - 2), 0), max(j, i + 2)
+        ts, ws = self.stamps[i:j] - t, self.rates[i:j]
+        tc = ts - ts.mean()
+        return (tc @ (ws - ws.mean(axis=0))) / float(tc @ tc)
+
+    def twist_noise(self) -> np.ndarray:
+        """Covariance (3, 3) of the angular velocity read at a frame: one sample's noise."""
+        return np.eye(3) * self.noise_rad_s**2
