@@ -342,7 +342,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                          "fitted terms take it in")
     with _lock_outputs(out, ["calibration.json"]):
         fit, result = calibrate_sequence(seq, out / "per_point_run", config=config, max_frames=args.max_frames,
-                                         progress=not args.quiet, reference_sd=reference_sd)
+                                         progress=not args.quiet, reference_sd=reference_sd, gyro=_gyroscope(args))
         summary = {"sequence": seq.name, "pairs": fit.pairs, "span_pairs": fit.span_pairs, **fit.config_values(),
                    "log_likelihood_per_pair": fit.log_likelihood,
                    "per_point_model_anees": [result.metrics.get("anees_translation"),

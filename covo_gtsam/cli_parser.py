@@ -127,6 +127,21 @@ def _topic_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ROS bags: sensor_msgs/CameraInfo topic (default %(default)s)")
 
 
+def _gyro_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--gyro", metavar="FILE",
+                        help="the camera's gyroscope: a text file of 't wx wy wz' lines (s on the frames' clock, "
+                        "rad/s), whose angular velocity at each frame (and its change over the readout) moves the "
+                        "colour rows in place of the pairs' twists; metrics.json's gyro says how many pairs it covered")
+    parser.add_argument("--gyro-rotation", type=float, nargs=4, metavar=("QX", "QY", "QZ", "QW"),
+                        help="with --gyro: the gyroscope's axes in the camera's optical frame (x right, y down, "
+                        "z forward), R_cam_gyro as a unit quaternion (default: the same axes)")
+    parser.add_argument("--gyro-time-offset", type=_number_in(-1.0, 1.0), default=0.0, metavar="S",
+                        help="with --gyro: added to its stamps to put them on the frames' clock (default 0)")
+    parser.add_argument("--gyro-noise", type=_number_in(0.0, 10.0), default=0.005, metavar="RAD_S",
+                        help="with --gyro: s.d. of one sample's error per axis, the compensation's remaining error in "
+                        "the covariance (default 0.005 rad/s)")
+
+
 def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT", plots: bool = True) -> None:
     """``--out`` (required), ``--no-plots`` (if the command plots) and ``--quiet``, common to every command."""
     parser.add_argument("--out", required=True, metavar=metavar, help="results folder (created if missing)")
@@ -191,18 +206,7 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
     run.add_argument("--scale", type=_setting(EstimatorConfig, "scale"), metavar="PHI",
                      help="the thesis's covariance scale phi: multiplies each pair's point-transfer "
                      "covariance inside the estimator; the calibrated sensor terms are applied after (default 1)")
-    run.add_argument("--gyro", metavar="FILE",
-                     help="the camera's gyroscope: a text file of 't wx wy wz' lines (s on the frames' clock, rad/s), "
-                     "whose angular velocities (and their change) move the colour rows in place of the pairs' twists; "
-                     "metrics.json's gyro says how many pairs it covered")
-    run.add_argument("--gyro-rotation", type=float, nargs=4, metavar=("QX", "QY", "QZ", "QW"),
-                     help="with --gyro: the gyroscope's axes in the camera's optical frame (x right, y down, z forward), "
-                     "R_cam_gyro as a unit quaternion (default: the same axes)")
-    run.add_argument("--gyro-time-offset", type=_number_in(-1.0, 1.0), default=0.0, metavar="S",
-                     help="with --gyro: added to its stamps to put them on the frames' clock (default 0)")
-    run.add_argument("--gyro-noise", type=_number_in(0.0, 10.0), default=0.005, metavar="RAD_S",
-                     help="with --gyro: s.d. of one sample's error per axis, the compensation's remaining error in the "
-                     "covariance (default 0.005 rad/s)")
+    _gyro_arguments(run)
     run.add_argument("--bag-out", choices=["ros1", "ros2"],
                      help="also write the odometry as a ROS bag: OUT/odometry.bag (ros1) or OUT/odometry/ (ros2) "
                      "with /covo/odometry (nav_msgs/Odometry) and /covo/relative (PoseWithCovarianceStamped)")
@@ -299,6 +303,7 @@ def build_parser(handlers: Mapping[str, Callable[[argparse.Namespace], int]]) ->
                      "jitter, measured from all its samples as reference_jitter in metrics.json, is held as a known "
                      "term, so the terms describe the camera alone and covo's NEES adds the reference's jitter back "
                      "when it checks against one; terms fitted with this flag have the jitter twice in such a check)")
+    _gyro_arguments(cal)
     _output_arguments(cal, plots=False)
     cal.set_defaults(func=handlers["calibrate"])
     return parser

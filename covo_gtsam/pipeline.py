@@ -456,6 +456,7 @@ def calibrate_sequence(
     fit_correlation_factor: bool = False,
     reference_sd: np.ndarray | None = None,
     fit_span: bool = True,
+    gyro: Gyroscope | None = None,
 ):
     """Fit the sensor terms (:func:`covo_gtsam.calibration.fit_sensor_terms`) on a sequence with
     ground truth.
@@ -476,7 +477,8 @@ def calibrate_sequence(
     (:func:`strided_runs`) with the other terms held (:func:`~covo_gtsam.calibration.fit_span_factor`);
     with fewer than :data:`~covo_gtsam.calibration.MIN_SPAN_PAIRS` such pairs (:func:`calibration_pairs`
     with ``longer``, and a recent translation to scale the term with) it keeps ``config``'s value (``SensorTerms.span_pairs`` says how many it
-    had). Returns ``(SensorTerms, RunResult)``.
+    had). ``gyro`` (:class:`~covo_gtsam.gyro.Gyroscope`) is given to every run, as ``covo run --gyro``
+    does. Returns ``(SensorTerms, RunResult)``.
 
     Raises:
         DatasetError: the sequence has no ground truth.
@@ -507,7 +509,7 @@ def calibrate_sequence(
     config = config.replace(sensor={"correlation_factor": 1.0, "frame_sigma_rot_deg": 0.0, "frame_sigma_trans_m": 0.0,
                                     "rolling_shutter_look_ahead": True, **no_terms}, tracking={"keyframes": False})
     result = run_sequence(seq, out_dir, config=config, max_frames=max_frames, plots=False, progress=progress,
-                          keep_error_bases=True)
+                          keep_error_bases=True, gyro=gyro)
     lookup = ground_truth_lookup(seq)
     consecutive = calibration_pairs(result.steps, lookup, config)
     T_est, T_true, covs = relative_ground_truth(consecutive, lookup)
@@ -533,7 +535,7 @@ def calibrate_sequence(
                            fixed=known(consecutive))
     if not fit_span:
         return fit, result
-    longer = [s for run in strided_runs(seq, config, max_frames, progress=progress)
+    longer = [s for run in strided_runs(seq, config, max_frames, progress=progress, gyro=gyro)
               for s in calibration_pairs(run, lookup, config, longer=True)]
     span, used = span_prior, 0
     if longer:
@@ -554,12 +556,12 @@ SPAN_STRIDES = (2, 3)
 
 
 def strided_runs(seq, config: OdometryConfig, max_frames: int | None = None, strides: Sequence[int] = SPAN_STRIDES,
-                 progress: bool = False) -> list[list[OdometryStep]]:
+                 progress: bool = False, gyro: Gyroscope | None = None) -> list[list[OdometryStep]]:
     """The steps of each run of ``config`` over every ``s``-th frame of ``seq`` for each ``s`` in
     ``strides``, each phase a run of its own (pairs ``s`` frame intervals long, as from a camera that
     drops frames), all from one pass over the first ``max_frames`` frames; error bases kept."""
     n = frame_count(seq, max_frames)
-    runs = {(s, p): VisualOdometry(seq.camera, config) for s in strides for p in range(s)}
+    runs = {(s, p): VisualOdometry(seq.camera, config, gyro=gyro) for s in strides for p in range(s)}
     histories = {key: StepHistory(keep_error_bases=True) for key in runs}  # slim: no estimator results
     any_vo = next(iter(runs.values()))
     load = _frame_loader(seq, n, config.sensor.depth_scale, any_vo.camera)

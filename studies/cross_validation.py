@@ -65,16 +65,17 @@ SEGMENTS = ((RPY, (("fr1_rpy, frames 1-119", 1, 119), ("fr1_rpy, frames 120-239"
             (DESK, (("fr1_desk", 1, 10**9),)))
 
 
-def per_point_pairs(data: Path, name: str, **sensor) -> dict:
+def per_point_pairs(data: Path, name: str, gyro=None, **sensor) -> dict:
     """Errors (N, 6), per-point covariances (N, 6, 6), frame-level error bases (name -> (N, 6, 6)),
     end frame index (N,) and true/estimated poses of the consecutive pairs with ground truth,
-    per-point model alone (and the ``sensor`` settings given). ``fixed`` holds the known terms: the
-    prior terms' and the ground truth's own jitter (``ref``, as ``metrics.json``'s NEES adds it);
-    ``jitter`` is that jitter's function of the stamps (for the chains' ends)."""
+    per-point model alone (and the ``sensor`` settings given; ``gyro`` a
+    :class:`~covo_gtsam.gyro.Gyroscope`, whose own part the per-point covariances then hold). ``fixed``
+    holds the known terms: the prior terms' and the ground truth's own jitter (``ref``, as
+    ``metrics.json``'s NEES adds it); ``jitter`` is that jitter's function of the stamps (for the chains' ends)."""
     seq = TumSequence(data / "tum" / name)
     cfg = OdometryConfig().replace(sensor={**POINTS_ONLY, **sensor})
     with tempfile.TemporaryDirectory() as tmp:
-        run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False, keep_error_bases=True)
+        run = run_sequence(seq, tmp, config=cfg, plots=False, progress=False, keep_error_bases=True, gyro=gyro)
     lookup = ground_truth_lookup(seq)
     pairs = calibration_pairs(run.steps, lookup, cfg, require_clock=False)
     fit_ok = {id(s) for s in calibration_pairs(run.steps, lookup, cfg)}  # the pairs covo calibrate fits
