@@ -83,10 +83,14 @@ __all__ = ["ERROR_TERMS", "DEFAULT_TERMS", "PRIOR_TERMS", "SensorTerms", "frame_
 ERROR_TERMS = {"timing": "timing_sigma_s", "depth_scale": "depth_scale_sigma", "depth_time": "depth_time_factor",
                "depth_time_coherent": "depth_time_coherent_factor",
                "rolling_shutter": "rolling_shutter_factor", "stamp_jitter": "stamp_jitter_s",
-               "latency": "latency_sigma_s", "span": "span_factor", "depth_jump": "depth_jump_factor"}
+               "latency": "latency_sigma_s", "span": "span_factor", "depth_jump": "depth_jump_factor",
+               "gyro": "gyro_sigma_rad_s"}
 #: The terms of the default model fitted on consecutive pairs (``stamp_jitter`` is a prior and ``span``
 #: needs longer pairs; docs/cross_validation.md).
 DEFAULT_TERMS = ("timing", "rolling_shutter", "latency", "depth_scale", "depth_time", "depth_time_coherent")
+#: With a gyroscope: its error in place of the rolling-shutter term, which only the pairs its samples do
+#: not cover keep (held at its configured value).
+GYRO_TERMS = tuple(t for t in DEFAULT_TERMS if t != "rolling_shutter") + ("gyro",)
 #: Terms held at their configured value (a prior) when the others are fitted.
 PRIOR_TERMS = ("stamp_jitter", "depth_jump")
 #: Fewest pairs over more than one interval the ``span`` term is fitted on (:func:`fit_span_factor`).

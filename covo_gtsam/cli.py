@@ -54,17 +54,15 @@ def _no_relative_pose(frames: int, tracked_frames: int, relative_poses: int) -> 
 
 def _gyroscope(args: argparse.Namespace):
     """``--gyro FILE`` and its settings as a :class:`~covo_gtsam.gyro.Gyroscope` (None without it)."""
-    told = [name for name in ("gyro_rotation",) if getattr(args, name) is not None]
-    told += [name for name, default in (("gyro_time_offset", 0.0), ("gyro_noise", 0.005))
-             if getattr(args, name) != default]
+    told = ["gyro_rotation"] if args.gyro_rotation is not None else []
+    told += ["gyro_time_offset"] if args.gyro_time_offset != 0.0 else []
     if args.gyro is None:
         if told:
             raise ConfigError(f"--{told[0].replace('_', '-')} needs --gyro FILE")
         return None
     from .gyro import Gyroscope
 
-    return Gyroscope.from_file(args.gyro, rotation=args.gyro_rotation, time_offset_s=args.gyro_time_offset,
-                               noise_rad_s=args.gyro_noise)
+    return Gyroscope.from_file(args.gyro, rotation=args.gyro_rotation, time_offset_s=args.gyro_time_offset)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -424,6 +422,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return _interrupted()
+    except BrokenPipeError:  # stdout closed early (``covo run ... | head -1``): the run itself is complete
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at the interpreter's exit
+        return 0
     except ImportError as exc:
         # Ctrl-C while an extension module initialises surfaces as an ImportError
         if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):

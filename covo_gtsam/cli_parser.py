@@ -131,15 +131,13 @@ def _gyro_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gyro", metavar="FILE",
                         help="the camera's gyroscope: a text file of 't wx wy wz' lines (s on the frames' clock, "
                         "rad/s), whose angular velocity at each frame (and its change over the readout) moves the "
-                        "colour rows in place of the pairs' twists; metrics.json's gyro says how many pairs it covered")
+                        "colour rows in place of the pairs' twists (its error: sensor.gyro_sigma_rad_s); "
+                        "metrics.json's gyro says how many pairs it covered")
     parser.add_argument("--gyro-rotation", type=float, nargs=4, metavar=("QX", "QY", "QZ", "QW"),
                         help="with --gyro: the gyroscope's axes in the camera's optical frame (x right, y down, "
                         "z forward), R_cam_gyro as a unit quaternion (default: the same axes)")
     parser.add_argument("--gyro-time-offset", type=_number_in(-1.0, 1.0), default=0.0, metavar="S",
                         help="with --gyro: added to its stamps to put them on the frames' clock (default 0)")
-    parser.add_argument("--gyro-noise", type=_number_in(0.0, 10.0), default=0.005, metavar="RAD_S",
-                        help="with --gyro: s.d. of one sample's error per axis, the compensation's remaining error in "
-                        "the covariance (default 0.005 rad/s)")
 
 
 def _output_arguments(parser: argparse.ArgumentParser, metavar: str = "OUT", plots: bool = True) -> None:

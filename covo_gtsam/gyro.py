@@ -34,11 +34,11 @@ class Gyroscope:
         rates: (N, 3) angular velocities in the gyroscope's axes (rad/s).
         rotation: ``R_cam_gyro`` (3, 3), or a quaternion ``(qx, qy, qz, qw)``; identity by default.
         time_offset_s: added to ``stamps`` to put them on the camera's clock.
-        noise_rad_s: standard deviation of one sample's error per axis (rad/s), the error the
-            compensation is left with (its covariance term).
+
+    Its error at a frame is the ``gyro`` term of the covariance (``sensor.gyro_sigma_rad_s``).
     """
 
-    def __init__(self, stamps, rates, rotation=None, time_offset_s: float = 0.0, noise_rad_s: float = 0.005) -> None:
+    def __init__(self, stamps, rates, rotation=None, time_offset_s: float = 0.0) -> None:
         t = np.asarray(stamps, dtype=float).reshape(-1)
         w = np.asarray(rates, dtype=float)
         if w.shape != (len(t), 3):
@@ -52,8 +52,6 @@ class Gyroscope:
             raise InputError(f"gyroscope: stamps must increase; sample {i + 1} ({t[i + 1]!r}) follows {t[i]!r}")
         if not (np.isfinite(time_offset_s) and abs(time_offset_s) <= 1.0):
             raise InputError(f"gyroscope: time_offset_s must be finite and within 1 s, got {time_offset_s!r}")
-        if not (np.isfinite(noise_rad_s) and noise_rad_s >= 0):
-            raise InputError(f"gyroscope: noise_rad_s must be finite and non-negative, got {noise_rad_s!r}")
         R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
         if R.shape == (4,):
             if not (np.all(np.isfinite(R)) and np.linalg.norm(R) > 0.5):
@@ -63,7 +61,6 @@ class Gyroscope:
             raise InputError("gyroscope: rotation must be a rotation matrix (3, 3) or a quaternion (qx, qy, qz, qw)")
         self.stamps = t + float(time_offset_s)
         self.rates = w @ R.T  # camera axes
-        self.noise_rad_s = float(noise_rad_s)
         self.max_gap_s = 0.05  # a sample is expected at least this often (s): a wider gap is no measurement
 
     @classmethod
@@ -107,7 +104,3 @@ class Gyroscope:
         ts, ws = self.stamps[i:j] - t, self.rates[i:j]
         tc = ts - ts.mean()
         return (tc @ (ws - ws.mean(axis=0))) / float(tc @ tc)
-
-    def twist_noise(self) -> np.ndarray:
-        """Covariance (3, 3) of the angular velocity read at a frame: one sample's noise."""
-        return np.eye(3) * self.noise_rad_s**2

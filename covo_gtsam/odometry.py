@@ -462,10 +462,6 @@ class VisualOdometry(DeprecatedStepAccess):
         except InputError as exc:  # e.g. a gap of more frame intervals than any camera has
             step.reason = str(exc)
             return step
-        if compensation is not None and compensation.measured:  # the gyroscope's own error, in place of the term
-            C = self._gyro_covariance(gains, X_ref, X_cur, pairs)
-            step.added_covariance["gyro"] = C
-            step.covariance = step.covariance + C
         if not _positive_definite(step.covariance):  # no information a back end could use
             step.reason = "the pair's covariance is not finite and positive definite"
             return step
@@ -613,19 +609,6 @@ class VisualOdometry(DeprecatedStepAccess):
         twists = [np.concatenate([gyro.angular_velocity(t), np.asarray(tw, dtype=float)[3:]])
                   for tw, t in zip((twist_ref, twist_cur), captures)]
         return _Compensation(*twists, tuple(gyro.angular_acceleration(t) for t in captures))
-
-    def _gyro_covariance(self, gains: tuple[np.ndarray, np.ndarray], X_ref: np.ndarray, X_cur: np.ndarray,
-                         pairs: PointPairs) -> np.ndarray:
-        """The pose's covariance (6x6) from the gyroscope's error at each frame of a pair whose rows it
-        compensated: each frame's response to an error of its angular velocity under one sample's noise."""
-        N = np.zeros((6, 6))
-        N[:3, :3] = self.gyro.twist_noise()
-        C = np.zeros((6, 6))
-        for G, X, uv in ((gains[0], X_ref, pairs.uv_ref), (gains[1], X_cur, pairs.uv_cur)):
-            B = self._shutter_response(G, X, uv)
-            C += B @ N @ B.T
-        self._gyro_pairs += 1
-        return C
 
     def _shutter_response(self, G: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """A frame's points' response (6x6) of the estimate to an error of the twist its rows were
@@ -860,7 +843,8 @@ class VisualOdometry(DeprecatedStepAccess):
         ``jump`` the pair's depth-period jump (s, :meth:`_depth_jump`); ``compensation`` what the rows
         were moved with (:meth:`_solve_pair`). Where a gyroscope gave both frames' angular
         velocities, the latency term's rotation basis is their change across the pair and the
-        rolling-shutter term is 0 (the compensation's error is the gyroscope's, :meth:`_gyro_covariance`)."""
+        rolling-shutter term is 0: the compensation's error is the gyroscope's (the ``gyro`` term, each
+        frame's response to an error of its angular velocity, per (rad/s)^2 on each axis)."""
         gyro = compensation is not None and compensation.measured
         M = T.matrix()
         G_ref, G_cur = gains
@@ -892,7 +876,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if gyro:  # the change of the angular velocity across the pair, measured, and its noise at both frames
             change = compensation.twist_cur[:3] - M[:3, :3].T @ compensation.twist_ref[:3]
             bases["latency"] = np.zeros((6, 6))
-            bases["latency"][:3, :3] = np.outer(change, change) + 2.0 * self.gyro.twist_noise()
+            bases["latency"][:3, :3] = np.outer(change, change) + 2.0 * self.config.sensor.gyro_sigma_rad_s**2 * np.eye(3)
         # a frame's pose keeps its stamp's full jitter unless it was moved to its place on the frame
         # clock, and then the uncertainty of the clock's phase, fitted to n stamps: 1/n of the variance
         n_ref = ref_step.clock_samples if ref_step.stamp_shift is not None else 0
@@ -929,6 +913,9 @@ class VisualOdometry(DeprecatedStepAccess):
             if gyro:
                 bases["rolling_shutter"] = np.zeros((6, 6))
                 shutter = B
+                B_ref = response(G_ref, X_ref, pairs.uv_ref)
+                bases["gyro"] = B[:, :3] @ B[:, :3].T + B_ref[:, :3] @ B_ref[:, :3].T
+                self._gyro_pairs += 1
             elif _trusted_velocity(ref_step) is None:
                 D = B - response(G_ref, X_ref, pairs.uv_ref)
                 bases["rolling_shutter"] = 0.25 * D @ change_cov @ D.T
@@ -996,12 +983,11 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def gyro_summary(self) -> dict | None:
         """The gyroscope the run was given (None without one): its samples, their time span (s, on
-        the frames' clock), the noise it was taken with (rad/s per axis) and how many pairs it
-        compensated (both frames' readouts covered by its samples)."""
+        the frames' clock) and how many pairs it compensated (both frames' readouts covered by its
+        samples)."""
         if self.gyro is None:
             return None
-        return {"samples": len(self.gyro.stamps), "span_s": list(self.gyro.span), "noise_rad_s": self.gyro.noise_rad_s,
-                "pairs": self._gyro_pairs}
+        return {"samples": len(self.gyro.stamps), "span_s": list(self.gyro.span), "pairs": self._gyro_pairs}
 
     def self_calibration(self) -> dict:
         """What the run learnt about its sensor without ground truth: the frame clock's period (s),

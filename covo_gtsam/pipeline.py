@@ -465,7 +465,8 @@ def calibrate_sequence(
     and every other term zero, frame to frame, the poses moved by the rolling-shutter look-ahead)
     into ``out_dir`` and fits the consecutive pairs
     (one frame interval) that have ground truth, with the frame-level terms named in ``terms``
-    (:data:`~covo_gtsam.calibration.DEFAULT_TERMS` if None); ``correlation_factor`` stays 1 (the
+    (:data:`~covo_gtsam.calibration.DEFAULT_TERMS` if None, :data:`~covo_gtsam.calibration.GYRO_TERMS`
+    with ``gyro``, the rolling-shutter term then held); ``correlation_factor`` stays 1 (the
     per-point model as it is) unless ``fit_correlation_factor``. Pairs the integrity check flagged are
     left out (their data is suspect), and so are the pairs of the first frames, which the frame
     clock has not placed yet; the prior terms (:data:`~covo_gtsam.calibration.PRIOR_TERMS`) are
@@ -487,6 +488,7 @@ def calibrate_sequence(
     from .calibration import (
         DEFAULT_TERMS,
         ERROR_TERMS,
+        GYRO_TERMS,
         MIN_SPAN_PAIRS,
         PRIOR_TERMS,
         fit_sensor_terms,
@@ -502,7 +504,10 @@ def calibrate_sequence(
                            else f"{seq.path}: calibration needs ground truth (groundtruth.txt)")
     config = config or OdometryConfig()
     span_prior = config.sensor.span_factor
-    priors = {k: getattr(config.sensor, ERROR_TERMS[k]) for k in PRIOR_TERMS}
+    held = PRIOR_TERMS + (("rolling_shutter",) if gyro is not None else ())
+    priors = {k: getattr(config.sensor, ERROR_TERMS[k]) for k in held}
+    if terms is None:
+        terms = DEFAULT_TERMS if gyro is None else GYRO_TERMS
     no_terms = {name: 0.0 for name in ERROR_TERMS.values()}
     # the poses moved by the rolling-shutter look-ahead: its factor is that of moved poses (a pose never
     # moved takes the term's model once more, VisualOdometry._shutter_unmoved)
@@ -531,7 +536,7 @@ def calibrate_sequence(
         return fixed
 
     fit = fit_sensor_terms(relative_pose_tangent_errors(T_est, T_true), covs, fit_correlation_factor,
-                           bases=stacked_bases(consecutive, DEFAULT_TERMS if terms is None else terms),
+                           bases=stacked_bases(consecutive, terms),
                            fixed=known(consecutive))
     if not fit_span:
         return fit, result

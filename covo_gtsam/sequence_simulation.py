@@ -445,8 +445,7 @@ def _gyroscope(cfg: SequenceSimulationConfig, traj: _Motion) -> Gyroscope | None
         return None
     t = np.arange(-cfg.period_s, cfg.frames * cfg.period_s, 1.0 / cfg.gyro_rate_hz)
     noise = np.random.default_rng([cfg.seed, 2]).normal(0.0, cfg.gyro_noise_rad_s, (len(t), 3))
-    return Gyroscope(t + cfg.stamp_latency_s, traj.angular_velocity(t) + noise,
-                     noise_rad_s=max(cfg.gyro_noise_rad_s, 1e-4))
+    return Gyroscope(t + cfg.stamp_latency_s, traj.angular_velocity(t) + noise)
 
 
 def _depth_clock(rng: np.random.Generator, cfg: SequenceSimulationConfig, captures: np.ndarray,

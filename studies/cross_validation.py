@@ -147,7 +147,7 @@ def check(fit, p: dict) -> str:
 
 
 UNITS = {"timing": (1e3, "ms"), "latency": (1e3, "ms"), "depth_scale": (1e2, "%"), "depth_time": (1.0, ""),
-         "depth_time_coherent": (1.0, ""), "rolling_shutter": (1.0, "")}
+         "depth_time_coherent": (1.0, ""), "rolling_shutter": (1.0, ""), "gyro": (1.0, " rad/s")}
 
 
 def fit_row(fit) -> str:

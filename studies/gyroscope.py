@@ -34,7 +34,7 @@ from cross_validation import DESK, RPY, check, fit_row, per_point_pairs, subset 
 from recorded_motion import check as sim_check  # noqa: E402
 from recorded_motion import halves, ms, part, simulate  # noqa: E402
 
-from covo_gtsam.calibration import DEFAULT_TERMS, fit_sensor_terms  # noqa: E402
+from covo_gtsam.calibration import DEFAULT_TERMS, GYRO_TERMS, fit_sensor_terms  # noqa: E402
 from covo_gtsam.config import OdometryConfig  # noqa: E402
 from covo_gtsam.datasets.tum import TumSequence  # noqa: E402
 from covo_gtsam.evaluation import ground_truth_lookup, pairs_with_truth, relative_ground_truth  # noqa: E402
@@ -51,10 +51,8 @@ GYRO = {"gyro_rate_hz": 200.0, "gyro_noise_rad_s": 0.005}
 READOUT_ALONE = {"stamp_jitter_s": 0.0, "stamp_latency_s": 0.0, "depth_offset_s": (0.0, 0.0),
                  "depth_scale_sigma": 0.0, "bad_frame_rate": 0.0}
 SOURCES = {"every source": {}, "the readout alone": READOUT_ALONE}
-#: the stand-in gyroscope: the reference's motion smoothed over this (s), sampled at this rate (Hz),
-#: with about the smoothed reference's own noise in its angular velocity (rad/s: its 0.07 deg of
-#: jitter per 100 Hz sample through the 20 ms Gaussian's derivative)
-REF_SMOOTH_S, REF_RATE_HZ, REF_NOISE = 0.02, 200.0, 0.015
+#: the stand-in gyroscope: the reference's motion smoothed over this (s), sampled at this rate (Hz)
+REF_SMOOTH_S, REF_RATE_HZ = 0.02, 200.0
 READOUTS = (0.020, 0.025, 0.030, 0.035, 0.040)
 OFFSETS = (-0.010, -0.005, 0.005, 0.010)
 
@@ -103,7 +101,7 @@ def reference_gyro(seq_dir: Path, offset: float = 0.0) -> Gyroscope:
     motion = RecordedMotion.from_tum(gt, 0.0, REF_SMOOTH_S)
     first = float(load_tum_trajectory(gt)[0][0])
     t = np.arange(motion.span[0] + 0.01, motion.span[1] - 0.01, 1.0 / REF_RATE_HZ)
-    return Gyroscope(t + first, motion.angular_velocity(t), time_offset_s=offset, noise_rad_s=REF_NOISE)
+    return Gyroscope(t + first, motion.angular_velocity(t), time_offset_s=offset)
 
 
 def accuracy(seq: TumSequence, readout: float, gyro: Gyroscope | None) -> tuple:
@@ -129,8 +127,8 @@ def accuracy_lines(data: Path) -> tuple[list[str], float]:
     seq, gyro = TumSequence(seq_dir), reference_gyro(seq_dir)
     lines = ["## 2. The shared fr1 frames with the reference's angular velocity as a gyroscope", "",
              f"The stand-in gyroscope is fr1_rpy's reference motion smoothed over {1e3 * REF_SMOOTH_S:.0f} ms, its "
-             f"angular velocity at {REF_RATE_HZ:.0f} Hz on the reference's clock, taken with {REF_NOISE} rad/s of "
-             "noise (about the smoothed reference's own). It shares the reference's errors, so every figure here is "
+             f"angular velocity at {REF_RATE_HZ:.0f} Hz on the reference's clock. It shares the reference's errors, "
+             "so every figure here is "
              "measured against the source of the angular velocity it used: an indication, not a check, of what a "
              "gyroscope does on the real Kinect.", "",
              "### Accuracy by readout time", "",
@@ -160,22 +158,24 @@ def accuracy_lines(data: Path) -> tuple[list[str], float]:
 def calibration_lines(data: Path, readout: float) -> list[str]:
     lines = ["### The sensor terms refitted with the gyroscope", "",
              "The default terms fitted by maximum likelihood on one half of fr1_rpy (as `covo calibrate` fits, the "
-             "reference's own jitter held as a known term) and checked on the other half and on fr1_desk (its own "
-             "stand-in gyroscope): without the gyroscope at the default readout, and with it at "
+             "reference's own jitter held as a known term; with the gyroscope its `gyro` term in place of the "
+             "rolling-shutter term, whose bases are zero wherever the gyroscope covers a pair) and checked on the "
+             "other half and on fr1_desk (its own stand-in gyroscope): without the gyroscope at the default readout, "
+             "and with it at "
              f"{1e3 * readout:.0f} ms. Columns as in cross_validation.md.", "",
              "| gyroscope | fitted on | terms | checked on | ANEES t / r | NEES > 9.35 t / r | largest NEES t / r | "
              "30-pair chains ANEES t / r | log-likelihood per pair |", "|---|---|---|---|---|---|---|---|---|"]
-    for label, rpy_gyro, desk_gyro, sensor in (
-            ("no", None, None, {}),
+    for label, rpy_gyro, desk_gyro, sensor, terms in (
+            ("no", None, None, {}, DEFAULT_TERMS),
             ("yes", reference_gyro(data / "tum" / RPY), reference_gyro(data / "tum" / DESK),
-             {"rolling_shutter_s": readout})):
+             {"rolling_shutter_s": readout}, GYRO_TERMS)):
         rpy = per_point_pairs(data, RPY, gyro=rpy_gyro, **sensor)
         desk = per_point_pairs(data, DESK, gyro=desk_gyro, **sensor)
         halves_ = {"A": rpy["end"] <= 119, "B": rpy["end"] >= 120}
         for name, m in halves_.items():
             train = subset(rpy, m & rpy["fit_ok"])
             fit = fit_sensor_terms(train["err"], train["cov"], False,
-                                   bases={n: train["bases"][n] for n in DEFAULT_TERMS}, fixed=train["fixed"])
+                                   bases={n: train["bases"][n] for n in terms}, fixed=train["fixed"])
             other = "B" if name == "A" else "A"
             for target, p in ((f"{other} (held out)", subset(rpy, halves_[other])), ("fr1_desk (held out)", desk)):
                 lines.append(f"| {label} | {name} | {fit_row(fit)} | {target} | {check(fit, p)} |")

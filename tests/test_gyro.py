@@ -69,7 +69,6 @@ def test_covers_needs_samples_around_the_readout_without_a_gap():
     ([0.0, 0.1], np.zeros((2, 3)), {"rotation": np.diag([1.0, 1.0, -1.0])}, "rotation matrix"),
     ([0.0, 0.1], np.zeros((2, 3)), {"rotation": [0.0, 0.0, 0.0, 0.0]}, "unit"),
     ([0.0, 0.1], np.zeros((2, 3)), {"time_offset_s": 5.0}, "within 1 s"),
-    ([0.0, 0.1], np.zeros((2, 3)), {"noise_rad_s": -1.0}, "non-negative"),
 ])
 def test_bad_samples_are_refused_with_a_clear_error(stamps, rates, kwargs, message):
     with pytest.raises(InputError, match=message):
@@ -184,16 +183,16 @@ def _reference_gyro(sample_dir, path, smooth_s: float = 0.02) -> None:
 
 def test_covo_run_with_a_gyroscope_file(sample_dir, tmp_path, capsys):
     """``covo run --gyro FILE``: every pair whose readouts the samples cover is compensated with them,
-    metrics.json says how many, and each pair's covariance holds the gyroscope's part in place of the
-    rolling-shutter term; the settings of the gyroscope without a file are refused in one line."""
+    metrics.json says how many, and each pair's covariance holds the gyroscope's term
+    (``sensor.gyro_sigma_rad_s``) in place of the rolling-shutter term; the settings of the
+    gyroscope without a file are refused in one line."""
     from covo_gtsam.cli import main
 
     _reference_gyro(sample_dir, tmp_path / "gyro.txt")
     base = ["run", str(sample_dir), "--max-frames", "12", "--no-plots", "--quiet"]
-    assert main([*base, "--out", str(tmp_path / "g"), "--gyro", str(tmp_path / "gyro.txt"),
-                 "--gyro-noise", "0.01"]) == 0
+    assert main([*base, "--out", str(tmp_path / "g"), "--gyro", str(tmp_path / "gyro.txt")]) == 0
     m = json.loads((tmp_path / "g" / "metrics.json").read_text())
-    assert m["gyro"]["pairs"] == m["nees_pairs"] == 11 and m["gyro"]["noise_rad_s"] == 0.01
+    assert m["gyro"]["pairs"] == m["nees_pairs"] == 11
     assert m["covariance_parts"]["rotation"]["gyro"] > 0 and m["covariance_parts"]["rotation"]["rolling_shutter"] == 0
     assert main([*base, "--out", str(tmp_path / "plain")]) == 0
     plain = json.loads((tmp_path / "plain" / "metrics.json").read_text())
