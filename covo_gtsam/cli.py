@@ -54,12 +54,19 @@ def _no_relative_pose(frames: int, tracked_frames: int, relative_poses: int) -> 
 
 def _gyroscope(args: argparse.Namespace):
     """``--gyro FILE`` and its settings as a :class:`~covo_gtsam.gyro.Gyroscope` (None without it)."""
+    from .datasets.rosbag import DEFAULT_GYRO_TOPIC, is_bag, read_gyro
+
     told = ["gyro_rotation"] if args.gyro_rotation is not None else []
     told += ["gyro_time_offset"] if args.gyro_time_offset != 0.0 else []
+    told += ["gyro_topic"] if args.gyro_topic != DEFAULT_GYRO_TOPIC else []
     if args.gyro is None:
         if told:
-            raise ConfigError(f"--{told[0].replace('_', '-')} needs --gyro FILE")
+            raise ConfigError(f"--{told[0].replace('_', '-')} needs --gyro FILE|BAG")
         return None
+    if is_bag(args.gyro):
+        return read_gyro(args.gyro, args.gyro_topic, rotation=args.gyro_rotation, time_offset_s=args.gyro_time_offset)
+    if args.gyro_topic != DEFAULT_GYRO_TOPIC:
+        raise ConfigError(f"--gyro-topic reads a ROS bag; {args.gyro} is not one (a text file of 't wx wy wz' lines)")
     from .gyro import Gyroscope
 
     return Gyroscope.from_file(args.gyro, rotation=args.gyro_rotation, time_offset_s=args.gyro_time_offset)

@@ -128,11 +128,15 @@ def _topic_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _gyro_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--gyro", metavar="FILE",
+    from .datasets.rosbag import DEFAULT_GYRO_TOPIC
+
+    parser.add_argument("--gyro", metavar="FILE|BAG",
                         help="the camera's gyroscope: a text file of 't wx wy wz' lines (s on the frames' clock, "
-                        "rad/s), whose angular velocity at each frame (and its change over the readout) moves the "
-                        "colour rows in place of the pairs' twists (its error: sensor.gyro_sigma_rad_s); "
-                        "metrics.json's gyro says how many pairs it covered")
+                        "rad/s) or a ROS bag's sensor_msgs/Imu topic (--gyro-topic), whose angular velocity at each "
+                        "frame (and its change over the readout) moves the colour rows in place of the pairs' twists "
+                        "(its error: sensor.gyro_sigma_rad_s); metrics.json's gyro says how many pairs it covered")
+    parser.add_argument("--gyro-topic", default=DEFAULT_GYRO_TOPIC, metavar="TOPIC",
+                        help=f"with --gyro BAG: its sensor_msgs/Imu topic (default {DEFAULT_GYRO_TOPIC})")
     parser.add_argument("--gyro-rotation", type=float, nargs=4, metavar=("QX", "QY", "QZ", "QW"),
                         help="with --gyro: the gyroscope's axes in the camera's optical frame (x right, y down, "
                         "z forward), R_cam_gyro as a unit quaternion (default: the same axes)")

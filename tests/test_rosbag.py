@@ -583,3 +583,80 @@ def test_a_library_error_over_several_lines_is_one_line(tmp_path, capsys):
     assert main(["run", str(bag), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("covo: error: ") and "metadata.yaml" in err
+
+
+def _imu_bag(path, ros1: bool, samples, topic: str = "/camera/imu", empty_topic: str | None = "/imu"):
+    """A bag of ``sensor_msgs/Imu`` messages ``(t, wx, wy, wz)`` on ``topic`` in the order given, and on
+    ``empty_topic`` accelerometer-only messages (angular_velocity_covariance[0] = -1, as the TUM bags' /imu)."""
+    ts = _typestore(ros1)
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        writer, ser = Writer(path), ts.serialize_ros1
+    else:
+        from rosbags.rosbag2 import Writer
+
+        writer, ser = Writer(path, version=8), ts.serialize_cdr
+    imu_t = "sensor_msgs/msg/Imu"
+    T = ts.types
+    writer.open()
+
+    def imu(t, w, covariance):
+        vec = T["geometry_msgs/msg/Vector3"]
+        return T[imu_t](header=_header(ts, ros1, t, "camera_imu_optical_frame"),
+                        orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                        orientation_covariance=np.full(9, -1.0), angular_velocity=vec(x=w[0], y=w[1], z=w[2]),
+                        angular_velocity_covariance=np.full(9, covariance),
+                        linear_acceleration=vec(x=0.0, y=9.8, z=0.0), linear_acceleration_covariance=np.zeros(9))
+
+    conn = writer.add_connection(topic, imu_t, typestore=ts)
+    for i, (t, *w) in enumerate(samples):
+        writer.write(conn, int(round(1e9 * (1000.0 + i))), ser(imu(t, w, 0.0), imu_t))
+    if empty_topic:
+        other = writer.add_connection(empty_topic, imu_t, typestore=ts)
+        for i, (t, *_) in enumerate(samples):
+            writer.write(other, int(round(1e9 * (1000.0 + i))), ser(imu(t, (0.0, 0.0, 0.0), -1.0), imu_t))
+    writer.close()
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_a_gyroscope_from_a_bags_imu_topic(tmp_path, ros1):
+    """``read_gyro``: angular velocities by header stamp, sorted (a bag holds them as they arrived), a
+    repeated stamp once; an accelerometer-only topic, a missing topic and another message type are
+    refused in one line that names the bag and the topic."""
+    from covo_gtsam.datasets.rosbag import read_gyro
+
+    samples = [(10.00, 0.1, 0.2, 0.3), (10.01, 0.2, 0.3, 0.4), (10.005, 0.15, 0.25, 0.35), (10.01, 9.0, 9.0, 9.0),
+               (10.02, 0.3, 0.4, 0.5)]
+    path = tmp_path / ("imu.bag" if ros1 else "imu")
+    _imu_bag(path, ros1, samples)
+    gyro = read_gyro(path, time_offset_s=0.5)
+    np.testing.assert_allclose(gyro.stamps, [10.5, 10.505, 10.51, 10.52], atol=1e-9)
+    np.testing.assert_allclose(gyro.angular_velocity(10.5075), [0.175, 0.275, 0.375], atol=1e-9)
+    with pytest.raises(DatasetError, match=r"topic /imu gives no angular velocity: all 5 say"):
+        read_gyro(path, "/imu")
+    with pytest.raises(DatasetError, match=r"no topic /gyro in the bag \(topics: /camera/imu, /imu\)"):
+        read_gyro(path, "/gyro")
+
+
+def test_covo_run_takes_the_gyroscope_from_a_bag(tmp_path, sample_dir, capsys):
+    """``covo run SEQ --gyro BAG --gyro-topic T``: the angular velocities of the reference's motion
+    written as Imu messages compensate every pair; a colour topic is not an Imu topic."""
+    from covo_gtsam.sequence_simulation import RecordedMotion
+
+    motion = RecordedMotion.from_tum(sample_dir / "groundtruth.txt", 0.0, 0.02)
+    first = float(load_tum_trajectory(sample_dir / "groundtruth.txt")[0][0])
+    t = np.arange(motion.span[0] + 0.01, motion.span[1] - 0.01, 0.005)
+    _imu_bag(tmp_path / "imu.bag", True, np.column_stack([t + first, motion.angular_velocity(t)]), topic="/gyro",
+             empty_topic=None)
+    base = ["run", str(sample_dir), "--max-frames", "6", "--no-plots", "--quiet"]
+    assert main([*base, "--out", str(tmp_path / "o"), "--gyro", str(tmp_path / "imu.bag"), "--gyro-topic", "/gyro"]) == 0
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert m["gyro"]["pairs"] == m["nees_pairs"] == 5
+    capsys.readouterr()
+    seq = TumSequence(sample_dir)
+    write_bag(tmp_path / "cam.bag", seq, True, "rgb8", "32FC1", n=2, tf=False)
+    assert main([*base, "--out", str(tmp_path / "x"), "--gyro", str(tmp_path / "cam.bag"),
+                 "--gyro-topic", "/camera/rgb/image_color"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "has messages of type sensor_msgs/msg/Image, expected sensor_msgs/Imu" in err[0]

@@ -42,7 +42,7 @@ from ..errors import ConfigError, DatasetError, InputError
 from ..geometry import make_pose, quat_to_matrix
 from .tum import associate, interpolate_poses
 
-__all__ = ["DEFAULT_TOPICS", "RosbagSequence", "is_bag"]
+__all__ = ["DEFAULT_GYRO_TOPIC", "DEFAULT_TOPICS", "RosbagSequence", "is_bag", "read_gyro"]
 
 DEFAULT_TOPICS = {
     "rgb_topic": "/camera/rgb/image_color",
@@ -52,6 +52,8 @@ DEFAULT_TOPICS = {
 COLOUR_ENCODINGS = ("rgb8", "bgr8", "mono8")
 DEPTH_ENCODINGS = ("32FC1", "16UC1")
 TF_TOPICS = ("/tf", "/tf_static")
+#: ``sensor_msgs/Imu`` topic a gyroscope is read from (a RealSense driver's with unite_imu_method set)
+DEFAULT_GYRO_TOPIC = "/camera/imu"
 _MM = np.float32(1.0 / 1000.0)
 
 
@@ -69,6 +71,67 @@ def _stamp(header) -> float:
 def _stamp_ns(header) -> int:
     """The header's stamp in whole nanoseconds, exactly (a float in seconds is not, today)."""
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _open_bag(path: Path):
+    """An opened rosbags ``AnyReader`` of the bag at ``path`` (close it when done); a bag it cannot
+    read is a :class:`DatasetError`."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except Exception as exc:  # rosbags' reader errors have no common public base
+        raise DatasetError(f"{path}: cannot read the bag ({exc})") from exc
+    return reader
+
+
+def read_gyro(path: str | os.PathLike, topic: str = DEFAULT_GYRO_TOPIC, rotation=None, time_offset_s: float = 0.0):
+    """A :class:`~covo_gtsam.gyro.Gyroscope` from a bag's ``sensor_msgs/Imu`` topic: each message's
+    ``header.stamp`` and ``angular_velocity`` (rad/s, in its ``frame_id``'s axes; ``rotation`` is
+    ``R_cam_gyro``), in stamp order (a bag holds them in arrival order; a repeated stamp keeps its
+    first message). Messages whose ``angular_velocity_covariance[0]`` is -1 hold no angular velocity
+    (ROS's convention, e.g. the TUM bags' accelerometer on ``/imu``) and are left out; a topic with
+    none left, of another type or missing is a :class:`DatasetError`."""
+    from ..gyro import Gyroscope
+    from ..ros_io import require_rosbags
+
+    require_rosbags()
+    p = Path(os.path.abspath(os.fspath(path)))
+    if not p.exists():
+        raise DatasetError(f"{p}: bag does not exist")
+    reader = _open_bag(p)
+    try:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if not conns:
+            topics = sorted({c.topic for c in reader.connections})
+            raise DatasetError(f"{p}: no topic {topic} in the bag (topics: {', '.join(topics) or 'none'}); "
+                               "choose the gyroscope's with --gyro-topic")
+        if any(c.msgtype != "sensor_msgs/msg/Imu" for c in conns):
+            raise DatasetError(f"{p}: topic {topic} has messages of type {conns[0].msgtype}, expected sensor_msgs/Imu")
+        stamps, rates, empty = [], [], 0
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if msg.angular_velocity_covariance[0] == -1:
+                empty += 1
+                continue
+            w = msg.angular_velocity
+            stamps.append(_stamp(msg.header))
+            rates.append((w.x, w.y, w.z))
+    finally:
+        reader.close()
+    if not stamps:
+        why = f"all {empty} say they hold no angular velocity (covariance -1)" if empty else "it has no message"
+        raise DatasetError(f"{p}: topic {topic} gives no angular velocity: {why}")
+    t = np.array(stamps)
+    order = np.argsort(t, kind="stable")
+    t, w = t[order], np.array(rates, dtype=float)[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    try:
+        return Gyroscope(t[keep], w[keep], rotation=rotation, time_offset_s=time_offset_s)
+    except InputError as exc:
+        raise DatasetError(f"{p}: topic {topic}: {exc}") from None
 
 
 def _field(msg, *names):
@@ -192,21 +255,6 @@ class RosbagSequence:
         self._scan(gt_frame, max_dt, max_gap)
 
     # -- reading ------------------------------------------------------------------------------
-    def _reader(self):
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-
-        try:
-            return AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-        except Exception as exc:  # rosbags' reader errors have no common public base
-            raise DatasetError(f"{self.path}: cannot read the bag ({exc})") from exc
-
-    def _open(self, reader):
-        try:
-            reader.open()
-        except Exception as exc:
-            raise DatasetError(f"{self.path}: cannot read the bag ({exc})") from exc
-
     def _connections(self, reader, topic: str, required: bool = True):
         conns = [c for c in reader.connections if c.topic == topic]
         if not conns and required:
@@ -220,8 +268,7 @@ class RosbagSequence:
         return conns
 
     def _scan(self, gt_frame, max_dt: float, max_gap: float) -> None:
-        reader = self._reader()
-        self._open(reader)
+        reader = _open_bag(self.path)
         try:
             rgb_c = self._connections(reader, self.rgb_topic)
             depth_c = self._connections(reader, self.depth_topic)
@@ -342,8 +389,7 @@ class RosbagSequence:
         depth: dict[int, object] = {}
         counts = {self.rgb_topic: -1, self.depth_topic: -1}
         nxt = 0
-        reader = self._reader()
-        self._open(reader)
+        reader = _open_bag(self.path)
         try:
             conns = self._connections(reader, self.rgb_topic) + self._connections(reader, self.depth_topic)
             for conn, _, raw in reader.messages(connections=conns):
