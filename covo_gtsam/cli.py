@@ -41,6 +41,10 @@ def load_config_file(path: str):
     return load_config(path)
 
 
+#: Exit code when standard output was closed before the command had printed everything (as a shell
+#: reports a process that SIGPIPE ended: 128 + 13); the results folder is written.
+EXIT_BROKEN_PIPE = 141
+
 #: Exit code of ``covo run`` when no frame could be tracked, or no relative pose estimated (the
 #: results folder is still written); of ``covo evaluate`` when that happened to a sequence.
 EXIT_NOTHING_TRACKED = 3
@@ -411,7 +415,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run one command; the exit code: 0 done, 2 unusable input (one line on stderr), 3 ``covo run``
     tracked no frame or estimated no relative pose (``covo evaluate``: a sequence did), 130
-    interrupted (Ctrl-C)."""
+    interrupted (Ctrl-C), 141 standard output closed early."""
     _one_blas_thread(sys.argv[1:] if argv is None else argv)
     try:
         parser = build_parser()  # imports GTSAM: Ctrl-C may arrive here
@@ -429,9 +433,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return _interrupted()
-    except BrokenPipeError:  # stdout closed early (``covo run ... | head -1``): the run itself is complete
+    except BrokenPipeError:  # stdout closed early (``covo run ... | head -1``): what was left to print is lost
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at the interpreter's exit
-        return 0
+        return EXIT_BROKEN_PIPE
     except ImportError as exc:
         # Ctrl-C while an extension module initialises surfaces as an ImportError
         if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):

@@ -20,7 +20,8 @@ exit codes:
   0 done; 2 unusable input (one line on stderr); 130 interrupted (Ctrl-C);
   3 covo run tracked no frame, or of two or more frames estimated no relative
   pose (its results are written); covo evaluate, when that happened to one of
-  its sequences (the summary is written).
+  its sequences (the summary is written); 141 standard output closed before
+  everything was printed (e.g. piped into head; the results are written).
 """
 
 

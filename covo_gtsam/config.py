@@ -151,7 +151,7 @@ class SensorConfig:
                                     "on (frame-level term)", "s", "non-negative", maximum=1.0)
     gyro_sigma_rad_s: float = number(0.005, "error of a gyroscope's angular velocity at a frame, per axis (frame-level "
                                      "term, only where covo run --gyro compensated a pair's rows; a MEMS gyroscope's "
-                                     "sample noise, not fitted)", "rad/s", "non-negative", maximum=10.0)
+                                     "sample noise; covo calibrate --gyro fits it)", "rad/s", "non-negative", maximum=10.0)
     depth_scale_sigma: float = number(0.000424, "a frame's depths all scaled by 1 + e (frame-level term)",
                                       "fraction", "non-negative", maximum=1.0)
     depth_time_factor: float = number(0.259, "error of the colour-depth time offset, times the stamped offset "

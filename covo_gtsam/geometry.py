@@ -42,6 +42,19 @@ def cross(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.nda
     return out
 
 
+def rotation_matrices(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) of rotation vectors (N, 3) (the exponential map of SO(3), Rodrigues'
+    formula; a test checks it against ``gtsam.Rot3.Expmap``)."""
+    w = np.asarray(w, dtype=float).reshape(-1, 3)
+    theta = np.linalg.norm(w, axis=1)
+    k = w / np.where(theta > 0, theta, 1.0)[:, None]
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K = K - K.transpose(0, 2, 1)
+    st, ct = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    return np.eye(3) + st * K + (1 - ct) * (K @ K)
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices from quaternions ``(qx, qy, qz, qw)``; (..., 4) -> (..., 3, 3).
 

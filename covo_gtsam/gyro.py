@@ -24,6 +24,8 @@ from .geometry import quat_to_matrix
 #: the angular acceleration is the slope of the angular velocity over this span (s) around a time:
 #: wide enough to average a MEMS gyroscope's sample noise, short against a hand's motion
 ACCELERATION_SPAN_S = 0.01
+#: samples further apart than this (s) leave the time between them unmeasured (:meth:`Gyroscope.covers`)
+MAX_GAP_S = 0.05
 
 
 class Gyroscope:
@@ -54,14 +56,14 @@ class Gyroscope:
             raise InputError(f"gyroscope: time_offset_s must be finite and within 1 s, got {time_offset_s!r}")
         R = np.eye(3) if rotation is None else np.asarray(rotation, dtype=float)
         if R.shape == (4,):
-            if not (np.all(np.isfinite(R)) and np.linalg.norm(R) > 0.5):
-                raise InputError(f"gyroscope: the rotation quaternion (qx, qy, qz, qw) must be finite and unit, got {R}")
+            if not (np.all(np.isfinite(R)) and abs(np.linalg.norm(R) - 1.0) < 1e-3):
+                raise InputError(f"gyroscope: the rotation quaternion (qx, qy, qz, qw) must be finite and of unit "
+                                 f"norm, got {R} (norm {np.linalg.norm(R):.4g})")
             R = quat_to_matrix(R)
         if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
             raise InputError("gyroscope: rotation must be a rotation matrix (3, 3) or a quaternion (qx, qy, qz, qw)")
         self.stamps = t + float(time_offset_s)
         self.rates = w @ R.T  # camera axes
-        self.max_gap_s = 0.05  # a sample is expected at least this often (s): a wider gap is no measurement
 
     @classmethod
     def from_file(cls, path: str | os.PathLike, **kwargs) -> Gyroscope:
@@ -83,13 +85,14 @@ class Gyroscope:
         return float(self.stamps[0]), float(self.stamps[-1])
 
     def covers(self, t: float, margin: float = 0.0) -> bool:
-        """Whether samples surround ``t - margin`` to ``t + margin`` with no gap over :attr:`max_gap_s`."""
+        """Whether samples surround ``t - margin`` to ``t + margin`` (s, on the frames' clock) with no gap
+        over :data:`MAX_GAP_S`."""
         a, b = t - margin, t + margin
         if not (self.stamps[0] <= a and b <= self.stamps[-1]):
             return False
         i, j = np.searchsorted(self.stamps, [a, b])
         seg = self.stamps[max(i - 1, 0):min(j + 1, len(self.stamps))]
-        return bool(np.all(np.diff(seg) <= self.max_gap_s))
+        return bool(np.all(np.diff(seg) <= MAX_GAP_S))
 
     def angular_velocity(self, t: float) -> np.ndarray:
         """The camera's angular velocity (3,) at ``t`` (rad/s, camera frame), linear between samples."""

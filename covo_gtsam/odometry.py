@@ -77,9 +77,10 @@ class _TwistSpan(NamedTuple):
 
 
 class _Compensation(NamedTuple):
-    """What a pair's two frames' rows were moved to their times with: the twists (6,) at the
-    reference and the current frame, and the two frames' angular accelerations (3,) where a
-    gyroscope measured both frames' angular velocities (None: the twists are the pairs')."""
+    """What a pair's two frames' rows were moved to their times with: the body twists (6,:
+    ``[omega, v]``, rad/s and m/s, each frame's own axes) at the reference and the current frame,
+    and the two frames' angular accelerations (3,: rad/s^2) where a gyroscope measured both frames'
+    angular velocities (None: the twists are the pairs')."""
 
     twist_ref: np.ndarray
     twist_cur: np.ndarray
@@ -96,7 +97,7 @@ class _Provisional(NamedTuple):
     from the captures to the stamps with; for its latency term (``sensor.latency_look_ahead``) the
     twist of the pair before it with that twist's noise, and for its current frame's rolling-shutter
     compensation (``sensor.rolling_shutter_look_ahead``) the estimate's response (6x6) to an error
-    of that compensation's twist and the twist (6,) it was compensated with (None where not settled)."""
+    of that compensation's twist and what the pair's rows were moved with (None where not settled)."""
 
     step: OdometryStep
     ref_step: OdometryStep
@@ -105,7 +106,7 @@ class _Provisional(NamedTuple):
     restamp: np.ndarray
     twist_before: np.ndarray | None
     noise_before: np.ndarray | None
-    shutter: tuple[np.ndarray, np.ndarray] | None
+    shutter: tuple[np.ndarray, _Compensation] | None
 
 
 def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
@@ -369,6 +370,7 @@ class VisualOdometry(DeprecatedStepAccess):
                 self._integrity.add(self._per_span(step))
             # counted for the pair kept (in keyframe mode it may have been tried against the old keyframe first)
             self._depth_jumps += step.depth_jump_s != 0.0
+            self._gyro_pairs += "gyro" in (step.error_bases or {})
             last = self._last.step
             if step.timestamp > last.timestamp:
                 self._velocity = (last.pose.between(step.pose), step.timestamp - last.timestamp)
@@ -599,12 +601,14 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def _gyro_compensation(self, twist_ref: np.ndarray, twist_cur: np.ndarray, captures: tuple[float, float]
                            ) -> _Compensation:
-        """The twists a pair's rows are moved with: the pairs' (:meth:`_frame_twists`), their
-        angular velocities replaced by the gyroscope's at the two captures, with its angular
-        accelerations, where its samples cover both frames' readouts (else the pairs' alone)."""
+        """The twists (6,: rad/s, m/s, camera frame) a pair's rows are moved with: the pairs'
+        (:meth:`_frame_twists`), their angular velocities replaced by the gyroscope's at the two
+        ``captures`` (s, on the stamps' clock), with its angular accelerations, where its samples cover
+        both frames' readouts, frame to frame (keyframe pairs, not checked with one, keep the pairs')."""
         gyro, readout = self.gyro, self.config.sensor.rolling_shutter_s
         margin = 0.5 * readout + 0.5 * ACCELERATION_SPAN_S
-        if gyro is None or readout <= 0 or not all(gyro.covers(t, margin) for t in captures):
+        if (gyro is None or readout <= 0 or self.config.tracking.keyframes
+                or not all(gyro.covers(t, margin) for t in captures)):
             return _Compensation(twist_ref, twist_cur)
         twists = [np.concatenate([gyro.angular_velocity(t), np.asarray(tw, dtype=float)[3:]])
                   for tw, t in zip((twist_ref, twist_cur), captures)]
@@ -709,7 +713,7 @@ class VisualOdometry(DeprecatedStepAccess):
         return Ad
 
     def _provisional_pair(self, step: OdometryStep, ref_step: OdometryStep, Ad: np.ndarray,
-                          shutter: np.ndarray | None, compensation: tuple[np.ndarray, np.ndarray] | None
+                          shutter: np.ndarray | None, compensation: _Compensation | None
                           ) -> _Provisional | None:
         """``step`` as a pair the next pair may settle (:meth:`_settle`): frame to frame, not flagged,
         with its own twist; its latency term with ``sensor.latency_look_ahead`` where the pair before
@@ -732,13 +736,13 @@ class VisualOdometry(DeprecatedStepAccess):
         if not (sensor.rolling_shutter_look_ahead and shutter is not None and compensation is not None):
             shutter = None
         else:
-            shutter = (shutter, compensation[1])
+            shutter = (shutter, compensation)
         if twist_before is None and shutter is None:
             return None
         return _Provisional(step, ref_step, span.motion, span.intervals, Ad, twist_before, noise_before, shutter)
 
     def _settle(self, ref_step: OdometryStep, step: OdometryStep,
-                compensation: tuple[np.ndarray, np.ndarray] | None) -> None:
+                compensation: _Compensation | None) -> None:
         """The pair ending at ``ref_step`` settled by ``step``, a trusted pair over as many intervals
         right after it whose frames' points were moved with the twists ``compensation``
         (:meth:`_solve_pair`); its pose covariance recomposed (it is the last posed frame: nothing
@@ -762,7 +766,10 @@ class VisualOdometry(DeprecatedStepAccess):
         # (not next to a pair whose depth images were read a period apart: its twists are what that corrupts)
         if prov.shutter is not None and compensation is not None and not (pair.depth_jump_s or step.depth_jump_s):
             S, used = prov.shutter
-            move = prov.restamp @ S @ (compensation[0] - used)
+            change = compensation.twist_ref - used.twist_cur
+            if used.measured:  # its angular velocity was the gyroscope's, not to be replaced by the pairs'
+                change[:3] = 0.0
+            move = prov.restamp @ S @ change
             pair.relative = pair.relative.compose(gtsam.Pose3.Expmap(move))
             pair.pose = prov.ref_step.pose.compose(pair.relative)
             if "rolling_shutter" in pair.added_covariance:  # the move made: its term as the settled pairs' fit has it
@@ -873,10 +880,10 @@ class VisualOdometry(DeprecatedStepAccess):
             measured, m, m_ref = known  # m_ref: the intervals the keyframe's own twist was taken over
             change_cov = m**2 * history  # the current frame's twist was taken over these m intervals
             bases["latency"] = (k / max(k - m, 1)) ** 2 * measured + change_cov
-        if gyro:  # the change of the angular velocity across the pair, measured, and its noise at both frames
-            change = compensation.twist_cur[:3] - M[:3, :3].T @ compensation.twist_ref[:3]
-            bases["latency"] = np.zeros((6, 6))
-            bases["latency"][:3, :3] = np.outer(change, change) + 2.0 * self.config.sensor.gyro_sigma_rad_s**2 * np.eye(3)
+        if gyro:  # the change of the angular velocity across the pair, measured (less the gyroscope's noise)
+            noise = np.zeros((6, 6))
+            noise[:3, :3] = self.config.sensor.gyro_sigma_rad_s**2 * np.eye(3)
+            bases["latency"] = known_change_basis(M, compensation.twist_ref, compensation.twist_cur, noise, noise)
         # a frame's pose keeps its stamp's full jitter unless it was moved to its place on the frame
         # clock, and then the uncertainty of the clock's phase, fitted to n stamps: 1/n of the variance
         n_ref = ref_step.clock_samples if ref_step.stamp_shift is not None else 0
@@ -915,7 +922,6 @@ class VisualOdometry(DeprecatedStepAccess):
                 shutter = B
                 B_ref = response(G_ref, X_ref, pairs.uv_ref)
                 bases["gyro"] = B[:, :3] @ B[:, :3].T + B_ref[:, :3] @ B_ref[:, :3].T
-                self._gyro_pairs += 1
             elif _trusted_velocity(ref_step) is None:
                 D = B - response(G_ref, X_ref, pairs.uv_ref)
                 bases["rolling_shutter"] = 0.25 * D @ change_cov @ D.T

@@ -22,7 +22,7 @@ import gtsam
 import numpy as np
 
 from .errors import InputError
-from .geometry import cross
+from .geometry import cross, rotation_matrices
 
 
 def row_time_offsets(v: np.ndarray, height: int, readout_s: float) -> np.ndarray:
@@ -38,9 +38,10 @@ def compensate_points(
     angular_acceleration: np.ndarray | None = None,
 ) -> np.ndarray:
     """Points (N, 3) moved from the camera frame at their row's capture time into the frame at
-    the image timestamp: ``X + δ (ω × X + v_lin)`` with ``δ`` from :func:`row_time_offsets`,
-    plus ``δ²/2 (α × X)`` with an angular acceleration ``α`` (the turn over ``δ`` is then
-    ``ω δ + α δ²/2``).
+    the image timestamp: ``X + δ (ω × X + v_lin)`` with ``δ`` from :func:`row_time_offsets`; with
+    an angular acceleration ``α`` (a gyroscope's), ``Exp(ω δ + α δ²/2) X + δ v_lin``, the turn over
+    ``δ`` to second order and its rotation exact (at a gyroscope's fast turns the first-order
+    rotation's own error is as large as the acceleration's).
 
     Args:
         X: (N, 3) camera-frame points (metres), back-projected from pixel rows ``v`` (N,).
@@ -51,10 +52,10 @@ def compensate_points(
     X = np.asarray(X, dtype=float)
     twist = np.asarray(twist, dtype=float).reshape(6)
     d = row_time_offsets(v, height, readout_s)[:, None]
-    turn = cross(twist[:3], X)
-    if angular_acceleration is not None:
-        turn = turn + (0.5 * d) * cross(np.asarray(angular_acceleration, dtype=float).reshape(3), X)
-    return X + d * (turn + twist[3:])
+    if angular_acceleration is None:
+        return X + d * (cross(twist[:3], X) + twist[3:])
+    turn = d * twist[:3] + (0.5 * d**2) * np.asarray(angular_acceleration, dtype=float).reshape(3)
+    return np.einsum("nij,nj->ni", rotation_matrices(turn), X) + d * twist[3:]
 
 
 def frame_twists(T_ref_cur: gtsam.Pose3, dt: float, ref_velocity: np.ndarray | None = None

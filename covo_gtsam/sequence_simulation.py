@@ -48,6 +48,7 @@ from .frontend import DESCRIPTOR_BYTES, Features, FrameData
 from .metrics import nees, relative_pose_tangent_errors
 from .config import OdometryConfig
 from .errors import InputError
+from .geometry import rotation_matrices
 from .gyro import Gyroscope
 from .odometry import VisualOdometry
 from .pipeline import stacked_bases
@@ -200,13 +201,13 @@ class _Motion:
     def in_camera(self, Pw: np.ndarray, t: np.ndarray) -> np.ndarray:
         """World points (N, 3) in the camera frame at their times ``t`` (N,)."""
         s = self._state(t)
-        return np.einsum("nji,nj->ni", _rodrigues(s[:, :3]), Pw - s[:, 3:])
+        return np.einsum("nji,nj->ni", rotation_matrices(s[:, :3]), Pw - s[:, 3:])
 
     def angular_velocity(self, t: np.ndarray, h: float = 1e-4) -> np.ndarray:
         """The camera's body angular velocity (N, 3) at times ``t`` (N,) (rad/s, camera frame):
         ``Log(R(t - h)^T R(t + h)) / 2h``."""
         t = np.asarray(t, dtype=float)
-        R0, R1 = _rodrigues(self._state(t - h)[:, :3]), _rodrigues(self._state(t + h)[:, :3])
+        R0, R1 = rotation_matrices(self._state(t - h)[:, :3]), rotation_matrices(self._state(t + h)[:, :3])
         return np.array([gtsam.Rot3.Logmap(gtsam.Rot3(a.T @ b)) for a, b in zip(R0, R1)]) / (2 * h)
 
 
@@ -294,17 +295,6 @@ class RecordedMotion(_Motion):
         h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
         return (h00 * self.x[i] + h10 * h[:, None] * self.dx[i] + h01 * self.x[i + 1]
                 + h11 * h[:, None] * self.dx[i + 1])
-
-
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (N, 3, 3) of rotation vectors (N, 3) (the exponential map of SO(3))."""
-    theta = np.linalg.norm(w, axis=1)
-    k = w / np.where(theta > 0, theta, 1.0)[:, None]
-    K = np.zeros((len(w), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K = K - K.transpose(0, 2, 1)
-    st, ct = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    return np.eye(3) + st * K + (1 - ct) * (K @ K)
 
 
 def _world_points(rng: np.random.Generator, n: int, half_angle_deg: float = 70.0) -> np.ndarray:

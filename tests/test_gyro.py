@@ -104,21 +104,23 @@ def _integrated(X: np.ndarray, d: np.ndarray, w0: np.ndarray, alpha: np.ndarray,
     return out
 
 
-def test_compensation_with_the_angular_acceleration_follows_a_turn_that_changes_within_the_readout():
-    """Rows read over 35 ms while the turn speeds up by about 40 rad/s^2 (from a slow turn, so that
-    the turn's own second order stays small): the first-order compensation with the angular velocity
-    at the frame misses the change, the one with the acceleration takes it."""
+@pytest.mark.parametrize("w0", [[0.2, -0.3, 0.1], [2.0, -4.5, 1.5]])
+def test_compensation_with_the_angular_acceleration_follows_a_turn_that_changes_within_the_readout(w0):
+    """Rows read over 35 ms while the turn speeds up by about 40 rad/s^2, from a slow and from a fast
+    turn (5 rad/s, where the first-order rotation's own error is as large): the first-order
+    compensation with the angular velocity at the frame misses the change, the gyroscope's form
+    takes it (the oracle integrates the turn in small steps)."""
     rng = np.random.default_rng(1)
     v = rng.uniform(0, 480, 200)
     X = np.column_stack([rng.uniform(-1, 1, 200), rng.uniform(-1, 1, 200), rng.uniform(1, 4, 200)])
-    w0, alpha = np.array([0.2, -0.3, 0.1]), np.array([-25.0, 30.0, 10.0])
+    w0, alpha = np.array(w0), np.array([-25.0, 30.0, 10.0])
     d = row_time_offsets(v, 480, 0.035)
     truth = _integrated(X, d, w0, alpha)
     twist = np.concatenate([w0, np.zeros(3)])
     first = compensate_points(X, v, twist, 480, 0.035)
     second = compensate_points(X, v, twist, 480, 0.035, alpha)
     err_first, err_second = (np.abs(Y - truth).max() for Y in (first, second))
-    assert err_first > 1e-3 and err_second < 0.05 * err_first
+    assert err_first > 1e-2 and err_second < 1e-3
 
 
 def _readout_run(gyro_rate_hz: float, **changes):
@@ -150,6 +152,10 @@ def test_a_simulated_gyroscope_takes_out_most_of_the_compensations_error():
     assert np.all(rms[1] < 1.05 * rms[0]), rms
     without, with_gyro = runs
     assert np.all(with_gyro.bases["rolling_shutter"] == 0) and np.any(without.bases["rolling_shutter"] != 0)
+    moving = with_gyro.consecutive.copy()
+    moving[0] = False  # (the run's first pair: its reference frame has no capture time yet)
+    assert np.all(np.trace(with_gyro.bases["gyro"][moving][:, :3, :3], axis1=1, axis2=2) > 0)
+    assert np.all(without.bases["gyro"] == 0)
 
 
 def test_a_gyroscope_that_misses_the_frames_leaves_the_pairs_twists(monkeypatch):
@@ -166,6 +172,7 @@ def test_a_gyroscope_that_misses_the_frames_leaves_the_pairs_twists(monkeypatch)
     monkeypatch.setattr(sim, "_gyroscope", early)
     shifted = _readout_run(200.0)
     np.testing.assert_array_equal(shifted.errors, plain.errors)
+    np.testing.assert_array_equal(shifted.covariances, plain.covariances)
 
 
 def _reference_gyro(sample_dir, path, smooth_s: float = 0.02) -> None:
@@ -205,3 +212,56 @@ def test_covo_run_with_a_gyroscope_file(sample_dir, tmp_path, capsys):
     assert main([*base, "--out", str(tmp_path / "y"), "--gyro", str(tmp_path / "bad.txt")]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.txt:1: expected 4 values" in err[0]
+
+
+def test_latency_basis_of_a_gyroscope_pair_is_the_change_of_the_turn_both_stamps_late_would_make(sample_dir):
+    """Both frames of a pair stamped ``L`` late put the pair at ``T Exp(L b)`` (right perturbation);
+    with a gyroscope the latency term's rotation basis is ``c c^T`` for the measured change ``c``. The
+    oracle is the motion the stand-in gyroscope was made from: ``b = Log(R(t_ref)^T R(t_cur))``'s change
+    when both times move by ``L``, over ``L``: the gyroscope's rates at the two captures, in the current
+    frame's axes (the axes' convention is :func:`~covo_gtsam.calibration.twist_change`'s, checked on its
+    own; on this motion, which turns about its angular velocity, the other convention errs by 1-2 % more)."""
+    from covo_gtsam.config import OdometryConfig
+    from covo_gtsam.datasets.tum import TumSequence
+    from covo_gtsam.io import load_tum_trajectory
+    from covo_gtsam.odometry import VisualOdometry
+    from covo_gtsam.sequence_simulation import RecordedMotion
+
+    gt = sample_dir / "groundtruth.txt"
+    motion = RecordedMotion.from_tum(gt, 0.0, 0.02)
+    first = float(load_tum_trajectory(gt)[0][0])
+    t = np.arange(motion.span[0] + 0.01, motion.span[1] - 0.01, 0.002)
+    gyro = Gyroscope(t + first, motion.angular_velocity(t))
+    seq = TumSequence(sample_dir)
+    # the frame clock off, so that a frame's capture is its stamp, where the oracle takes it
+    vo = VisualOdometry(seq.camera, OdometryConfig().replace(sensor={"frame_clock": False}), gyro=gyro)
+    L, errors = 1e-3, []
+    for i in range(12):
+        step = vo.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i])
+        if step.error_bases is None or "gyro" not in step.error_bases:
+            continue
+        a, b = step.ref_timestamp - first, step.timestamp - first
+
+        def turn(shift, a=a, b=b):
+            return motion.pose(a + shift).rotation().between(motion.pose(b + shift).rotation())
+
+        change = gtsam.Rot3.Logmap(turn(0.0).between(turn(L))) / L
+        w, U = np.linalg.eigh(step.error_bases["latency"][:3, :3])
+        c = U[:, -1] * np.sqrt(w[-1])
+        errors.append(min(np.linalg.norm(c - change), np.linalg.norm(c + change)) / np.linalg.norm(change))
+    # (a few per cent: the estimate's turn in place of the true one, the gyroscope read between samples; read a
+    # frame interval off, half to three times the change)
+    assert len(errors) >= 8 and np.median(errors) < 0.05 and max(errors) < 0.1, errors
+
+
+def test_keyframe_pairs_keep_the_pairs_twists(sample_dir, tmp_path):
+    """Keyframe mode is not checked with a gyroscope: its pairs are compensated as without one."""
+    from covo_gtsam.cli import main
+
+    _reference_gyro(sample_dir, tmp_path / "gyro.txt")
+    (tmp_path / "k.toml").write_text("[tracking]\nkeyframes = true\n")
+    base = ["run", str(sample_dir), "--max-frames", "8", "--no-plots", "--quiet", "--config", str(tmp_path / "k.toml")]
+    assert main([*base, "--out", str(tmp_path / "g"), "--gyro", str(tmp_path / "gyro.txt")]) == 0
+    assert main([*base, "--out", str(tmp_path / "p")]) == 0
+    assert json.loads((tmp_path / "g" / "metrics.json").read_text())["gyro"]["pairs"] == 0
+    assert (tmp_path / "g" / "relative.txt").read_text() == (tmp_path / "p" / "relative.txt").read_text()

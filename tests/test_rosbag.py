@@ -650,7 +650,8 @@ def test_covo_run_takes_the_gyroscope_from_a_bag(tmp_path, sample_dir, capsys):
     _imu_bag(tmp_path / "imu.bag", True, np.column_stack([t + first, motion.angular_velocity(t)]), topic="/gyro",
              empty_topic=None)
     base = ["run", str(sample_dir), "--max-frames", "6", "--no-plots", "--quiet"]
-    assert main([*base, "--out", str(tmp_path / "o"), "--gyro", str(tmp_path / "imu.bag"), "--gyro-topic", "/gyro"]) == 0
+    gyro = ["--gyro", str(tmp_path / "imu.bag"), "--gyro-topic", "/gyro"]
+    assert main([*base, "--out", str(tmp_path / "o"), *gyro]) == 0
     m = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert m["gyro"]["pairs"] == m["nees_pairs"] == 5
     capsys.readouterr()
