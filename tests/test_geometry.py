@@ -88,3 +88,17 @@ def test_adjoint_is_gtsams():
     batch = adjoint(np.array([P.matrix() for P in poses]))
     for P, A in zip(poses, batch):
         np.testing.assert_allclose(A, P.AdjointMap(), atol=1e-12)
+
+
+def test_rotation_matrices_agree_with_gtsams_exponential():
+    """Rodrigues' formula, vectorised, against ``gtsam.Rot3.Expmap``: zero, tiny, ordinary and near-pi
+    rotation vectors."""
+    from covo_gtsam.geometry import rotation_matrices
+
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(5, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    w = np.vstack([np.zeros(3), 1e-12 * axes[0], 1e-6 * axes[1], 0.3 * axes[2], 2.0 * axes[3],
+                   (np.pi - 1e-6) * axes[4]])
+    for wi, R in zip(w, rotation_matrices(w)):
+        np.testing.assert_allclose(R, gtsam.Rot3.Expmap(wi).matrix(), atol=1e-12)
