@@ -41,10 +41,6 @@ def load_config_file(path: str):
     return load_config(path)
 
 
-#: Exit code when standard output was closed before the command had printed everything (as a shell
-#: reports a process that SIGPIPE ended: 128 + 13); the results folder is written.
-EXIT_BROKEN_PIPE = 141
-
 #: Exit code of ``covo run`` when no frame could be tracked, or no relative pose estimated (the
 #: results folder is still written); of ``covo evaluate`` when that happened to a sequence.
 EXIT_NOTHING_TRACKED = 3
@@ -415,8 +411,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run one command; the exit code: 0 done, 2 unusable input (one line on stderr), 3 ``covo run``
     tracked no frame or estimated no relative pose (``covo evaluate``: a sequence did), 130
-    interrupted (Ctrl-C), 141 standard output closed early."""
+    interrupted (Ctrl-C). A standard output closed early (``covo run ... | head -1``) loses the rest of
+    what the command prints, nothing else (:class:`_ReaderMayLeave`)."""
     _one_blas_thread(sys.argv[1:] if argv is None else argv)
+    stdout, sys.stdout = sys.stdout, _ReaderMayLeave(sys.stdout)
     try:
         parser = build_parser()  # imports GTSAM: Ctrl-C may arrive here
         args, unknown = parser.parse_known_args(argv)
@@ -433,14 +431,47 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return _interrupted()
-    except BrokenPipeError:  # stdout closed early (``covo run ... | head -1``): what was left to print is lost
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at the interpreter's exit
-        return EXIT_BROKEN_PIPE
     except ImportError as exc:
         # Ctrl-C while an extension module initialises surfaces as an ImportError
         if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
             return _interrupted()
         raise
+    finally:
+        sys.stdout = stdout
+
+
+class _ReaderMayLeave:
+    """Standard output whose reader may leave before the end (a pipe into ``head``): from the first
+    broken pipe on, what is printed goes to the null device, so the command runs to its end with its
+    own exit code and stderr lines, and the interpreter's last flush finds nothing to fail on."""
+
+    def __init__(self, inner) -> None:
+        self._inner, self._gone = inner, False
+
+    def _left(self) -> None:
+        self._gone = True
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), self._inner.fileno())
+        except (OSError, ValueError, AttributeError):  # not a real file (a test's capture)
+            pass
+
+    def write(self, text: str) -> int:
+        if not self._gone:
+            try:
+                return self._inner.write(text)
+            except BrokenPipeError:
+                self._left()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self._gone:
+            try:
+                self._inner.flush()
+            except BrokenPipeError:
+                self._left()
+
+    def __getattr__(self, name):
+        return getattr(self._inner, name)
 
 
 def _show_warning(show):

@@ -20,8 +20,8 @@ exit codes:
   0 done; 2 unusable input (one line on stderr); 130 interrupted (Ctrl-C);
   3 covo run tracked no frame, or of two or more frames estimated no relative
   pose (its results are written); covo evaluate, when that happened to one of
-  its sequences (the summary is written); 141 standard output closed before
-  everything was printed (e.g. piped into head; the results are written).
+  its sequences (the summary is written). A standard output closed early
+  (piped into head) loses the rest of what is printed, nothing else.
 """
 
 
@@ -135,7 +135,8 @@ def _gyro_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the camera's gyroscope: a text file of 't wx wy wz' lines (s on the frames' clock, "
                         "rad/s) or a ROS bag's sensor_msgs/Imu topic (--gyro-topic), whose angular velocity at each "
                         "frame (and its change over the readout) moves the colour rows in place of the pairs' twists "
-                        "(its error: sensor.gyro_sigma_rad_s); metrics.json's gyro says how many pairs it covered")
+                        "(its error: sensor.gyro_sigma_rad_s; frame to frame only, not in keyframe mode); "
+                        "metrics.json's gyro says how many pairs it covered")
     parser.add_argument("--gyro-topic", default=DEFAULT_GYRO_TOPIC, metavar="TOPIC",
                         help=f"with --gyro BAG: its sensor_msgs/Imu topic (default {DEFAULT_GYRO_TOPIC})")
     parser.add_argument("--gyro-rotation", type=float, nargs=4, metavar=("QX", "QY", "QZ", "QW"),

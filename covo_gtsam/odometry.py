@@ -9,6 +9,7 @@ order. Settings: :mod:`covo_gtsam.config`; what each frame gets: :mod:`covo_gtsa
 from __future__ import annotations
 
 import threading
+import warnings
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -22,7 +23,7 @@ from .clock import FrameClock, check_depth_offset, check_stamp, restamp, seconds
 from .config import MAX_GAP_S, OdometryConfig
 from .covariance import compose_covariance
 from .depth_drift import DepthDrift, drift_along
-from .errors import ConfigError, CovoError, EstimationError, InputError
+from .errors import ConfigError, CovoError, CovoWarning, EstimationError, InputError
 from .estimator import RelativePoseResult, estimate_relative_pose
 from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_change, depth_scale_basis,
                            depth_time_basis, depth_time_shift, rolling_shutter_basis, shared_frame_covariance,
@@ -172,6 +173,9 @@ class VisualOdometry(DeprecatedStepAccess):
             raise ConfigError(f"config must be an OdometryConfig (see OdometryConfig.from_dict), got {config!r}")
         if gyro is not None and not isinstance(gyro, Gyroscope):
             raise ConfigError(f"gyro must be a covo_gtsam.gyro.Gyroscope, got {type(gyro).__name__}")
+        if gyro is not None and (config or OdometryConfig()).tracking.keyframes:
+            warnings.warn(CovoWarning("keyframe mode does not use the gyroscope (not checked with one): its pairs "
+                                      "are compensated with the pairs' twists"), stacklevel=2)
         self.gyro = gyro
         self._gyro_pairs = 0  # pairs compensated with the gyroscope's angular velocities
         self.config = config or OdometryConfig()

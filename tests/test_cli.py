@@ -402,14 +402,24 @@ def test_ctrl_c_ends_a_real_run_with_exit_code_130(tmp_path):
     assert len(stamps) < total and "100%" not in err  # stopped early
 
 
-def test_run_whose_stdout_is_closed_early_ends_without_a_traceback(tmp_path):
-    """``covo run ... | head -1``: the reader leaves before the last lines; the run is written, the exit
-    code is a shell's for SIGPIPE (141) and stderr holds no traceback (no BrokenPipeError at exit either)."""
-    proc = subprocess.Popen([sys.executable, "-m", "covo_gtsam.cli", "run", str(SAMPLE_DIR), "--max-frames", "3",
-                             "--out", str(tmp_path / "o"), "--no-plots", "--quiet"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
-    proc.stdout.close()  # nobody reads what it prints
-    err = proc.stderr.read().decode()
-    assert proc.wait(timeout=300) == cli.EXIT_BROKEN_PIPE == 141, err
-    assert "Traceback" not in err and "BrokenPipe" not in err, err
+def test_run_whose_stdout_is_closed_early_ends_as_it_would_have(small_sample, tmp_path):
+    """``covo run ... | head -1``: the reader leaves before the last lines; the run is written, and
+    the exit code and stderr are those of the run (no traceback, no BrokenPipeError at exit): 0, and
+    for a sequence whose frames are all lost its error line and 3."""
+    import cv2
+
+    def run(seq, out):
+        proc = subprocess.Popen([sys.executable, "-m", "covo_gtsam.cli", "run", str(seq), "--out", str(out),
+                                 "--no-plots", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+        proc.stdout.close()  # nobody reads what it prints
+        err = proc.stderr.read().decode()
+        return proc.wait(timeout=300), err
+
+    rc, err = run(small_sample(3), tmp_path / "o")
+    assert rc == 0 and "Traceback" not in err and "BrokenPipe" not in err, err
     assert (tmp_path / "o" / "metrics.json").is_file()
+    blind = small_sample(3)
+    for png in (blind / "depth").glob("*.png"):
+        cv2.imwrite(str(png), np.zeros((480, 640), np.uint16))
+    rc, err = run(blind, tmp_path / "b")
+    assert rc == cli.EXIT_NOTHING_TRACKED == 3 and "no frame could be tracked" in err and "Traceback" not in err, err

@@ -175,6 +175,29 @@ def test_a_gyroscope_that_misses_the_frames_leaves_the_pairs_twists(monkeypatch)
     np.testing.assert_array_equal(shifted.covariances, plain.covariances)
 
 
+def test_the_last_pair_a_gyroscope_covers_keeps_its_angular_velocity_when_the_next_pair_has_none(monkeypatch):
+    """Samples that stop mid-run: the next frame's pair, compensated with the pairs' twists, settles
+    the last pair the gyroscope covered by the look-ahead's translation part only, so that pair reads
+    as in a run with the gyroscope throughout (its angular velocity at the frame is not replaced by
+    the pairs'; replaced, it moves by 0.02 deg)."""
+    from covo_gtsam import sequence_simulation as sim
+
+    original = sim._gyroscope
+    full = _readout_run(200.0)
+
+    def stops(cfg, traj):
+        g = original(cfg, traj)
+        keep = g.stamps < 50 * cfg.period_s  # frame 49's readout covered, frame 50's not
+        return Gyroscope(g.stamps[keep], g.rates[keep])
+
+    monkeypatch.setattr(sim, "_gyroscope", stops)
+    cut = _readout_run(200.0)
+    k = int(np.flatnonzero(cut.frames[:, 1] == 49)[0])
+    assert np.all(cut.frames[k:k + 2] == [[48, 49], [49, 50]])
+    np.testing.assert_array_equal(cut.errors[:k + 1], full.errors[:k + 1])
+    assert np.linalg.norm(cut.errors[k + 1] - full.errors[k + 1]) > 1e-4  # (50 is compensated without it)
+
+
 def _reference_gyro(sample_dir, path, smooth_s: float = 0.02) -> None:
     """A gyroscope file from a sequence's ground truth: the angular velocity of its motion smoothed
     over ``smooth_s``, at 200 Hz, on the ground truth's clock (which TUM aligns with the frames')."""
@@ -252,16 +275,26 @@ def test_latency_basis_of_a_gyroscope_pair_is_the_change_of_the_turn_both_stamps
     # (a few per cent: the estimate's turn in place of the true one, the gyroscope read between samples; read a
     # frame interval off, half to three times the change)
     assert len(errors) >= 8 and np.median(errors) < 0.05 and max(errors) < 0.1, errors
+    # the gyroscope's noise comes off the measured change: at 10 rad/s of it nothing is left
+    noisy = VisualOdometry(seq.camera, OdometryConfig().replace(sensor={"frame_clock": False,
+                                                                       "gyro_sigma_rad_s": 10.0}), gyro=gyro)
+    steps = [noisy.register_frame(*seq.load(i), seq.timestamps[i], depth_timestamp=seq.depth_timestamps[i])
+             for i in range(6)]
+    latency = [s.error_bases["latency"] for s in steps if s.error_bases is not None and "gyro" in s.error_bases]
+    assert len(latency) >= 4 and np.all(np.array(latency) == 0)
 
 
-def test_keyframe_pairs_keep_the_pairs_twists(sample_dir, tmp_path):
-    """Keyframe mode is not checked with a gyroscope: its pairs are compensated as without one."""
+def test_keyframe_pairs_keep_the_pairs_twists(sample_dir, tmp_path, capsys):
+    """Keyframe mode is not checked with a gyroscope: its pairs are compensated as without one, and a
+    warning says so."""
     from covo_gtsam.cli import main
 
     _reference_gyro(sample_dir, tmp_path / "gyro.txt")
     (tmp_path / "k.toml").write_text("[tracking]\nkeyframes = true\n")
     base = ["run", str(sample_dir), "--max-frames", "8", "--no-plots", "--quiet", "--config", str(tmp_path / "k.toml")]
+    capsys.readouterr()
     assert main([*base, "--out", str(tmp_path / "g"), "--gyro", str(tmp_path / "gyro.txt")]) == 0
+    assert "covo: warning: keyframe mode does not use the gyroscope" in capsys.readouterr().err
     assert main([*base, "--out", str(tmp_path / "p")]) == 0
     assert json.loads((tmp_path / "g" / "metrics.json").read_text())["gyro"]["pairs"] == 0
     assert (tmp_path / "g" / "relative.txt").read_text() == (tmp_path / "p" / "relative.txt").read_text()
