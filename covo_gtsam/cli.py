@@ -123,6 +123,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"note: the covariance's sensor terms are the defaults, fitted on the freiburg1 Kinect of TUM RGB-D "
               f"(this camera: {seq.camera.name}{constant}); check them on this camera with covo calibrate on a "
               "sequence with ground truth (README, \"Known limits of the covariance\")")
+    if gyro is not None and not args.config:
+        print(f"note: the sensor terms are the defaults, fitted without a gyroscope; {m['gyro']['pairs']} pairs were "
+              f"compensated with it and take its error as sensor.gyro_sigma_rad_s "
+              f"({config.sensor.gyro_sigma_rad_s:g} rad/s, a MEMS gyroscope's noise): fit the terms with covo calibrate "
+              "--gyro on a sequence with ground truth before trusting the covariance")
     if result.plot_files is None:
         _plots_missing()
     print(f"results in {result.out_dir}")

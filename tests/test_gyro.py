@@ -223,6 +223,8 @@ def test_covo_run_with_a_gyroscope_file(sample_dir, tmp_path, capsys):
     assert main([*base, "--out", str(tmp_path / "g"), "--gyro", str(tmp_path / "gyro.txt")]) == 0
     m = json.loads((tmp_path / "g" / "metrics.json").read_text())
     assert m["gyro"]["pairs"] == m["nees_pairs"] == 11
+    assert ("note: the sensor terms are the defaults, fitted without a gyroscope; 11 pairs were compensated"
+            in capsys.readouterr().out)
     assert m["covariance_parts"]["rotation"]["gyro"] > 0 and m["covariance_parts"]["rotation"]["rolling_shutter"] == 0
     assert main([*base, "--out", str(tmp_path / "plain")]) == 0
     plain = json.loads((tmp_path / "plain" / "metrics.json").read_text())
