@@ -123,6 +123,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"note: the covariance's sensor terms are the defaults, fitted on the freiburg1 Kinect of TUM RGB-D "
               f"(this camera: {seq.camera.name}{constant}); check them on this camera with covo calibrate on a "
               "sequence with ground truth (README, \"Known limits of the covariance\")")
+    late = (m.get("gyro") or {}).get("clock_offset_s")
+    if late is not None and abs(late) > max(0.001, 3 * m["gyro"]["clock_offset_se_s"]):
+        print(f"note: the gyroscope's stamps lie {1e3 * late:+.1f} ± {1e3 * m['gyro']['clock_offset_se_s']:.1f} ms "
+              "behind the frames' clock by the pairs' own turns (its angular velocity is read that far off at each "
+              f"frame); run again with --gyro-time-offset {args.gyro_time_offset - late:.4f}")
     if gyro is not None and not args.config:
         print(f"note: the sensor terms are the defaults, fitted without a gyroscope; {m['gyro']['pairs']} pairs were "
               f"compensated with it and take its error as sensor.gyro_sigma_rad_s "

@@ -31,7 +31,7 @@ from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_cha
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
 from .geometry import image_velocities
-from .gyro import ACCELERATION_SPAN_S, Gyroscope
+from .gyro import ACCELERATION_SPAN_S, Gyroscope, clock_offset
 from .integrity import (MIN_CONSENSUS, IntegrityScale, below_majority, depth_free_check, depth_free_consensus,
                         per_span, reprojection_consensus)
 from .noise import blur_covariances, depth_lookup_variance
@@ -178,6 +178,10 @@ class VisualOdometry(DeprecatedStepAccess):
                                       "are compensated with the pairs' twists"), stacklevel=2)
         self.gyro = gyro
         self._gyro_pairs = 0  # pairs compensated with the gyroscope's angular velocities
+        #: (capture of the reference, of the current frame, the pair's mean angular velocity) of the kept
+        #: frame-to-frame pairs, for the gyroscope's clock offset (:func:`~covo_gtsam.gyro.clock_offset`)
+        self._turns: list[tuple[float, float, np.ndarray]] = []
+        self._turn: tuple | None = None  # the pair being registered's, until it is kept
         self.config = config or OdometryConfig()
         self.config.frontend.check_image_size(self.camera.width, self.camera.height)
         self._orb_local = threading.local()  # one ORB detector per thread (see prepare)
@@ -375,6 +379,9 @@ class VisualOdometry(DeprecatedStepAccess):
             # counted for the pair kept (in keyframe mode it may have been tried against the old keyframe first)
             self._depth_jumps += step.depth_jump_s != 0.0
             self._gyro_pairs += "gyro" in (step.error_bases or {})
+            turn, self._turn = self._turn, None
+            if turn is not None and turn[0] == step.timestamp and not step.flagged and not self.config.tracking.keyframes:
+                self._turns.append(turn[1:])
             last = self._last.step
             if step.timestamp > last.timestamp:
                 self._velocity = (last.pose.between(step.pose), step.timestamp - last.timestamp)
@@ -455,6 +462,7 @@ class VisualOdometry(DeprecatedStepAccess):
             return step
         twists = self._frame_twists(res.pose, dt, ref_step, timestamp) if dt > 0 else None
         step.velocity = None if twists is None else twists[1]
+        self._turn = None if twists is None or self.gyro is None else (timestamp, *captures, np.array(twists[1][:3]))
         M = res.pose.matrix()  # the estimate's response to each point of either frame
         gains = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
@@ -993,11 +1001,18 @@ class VisualOdometry(DeprecatedStepAccess):
 
     def gyro_summary(self) -> dict | None:
         """The gyroscope the run was given (None without one): its samples, their time span (s, on
-        the frames' clock) and how many pairs it compensated (both frames' readouts covered by its
-        samples)."""
+        the frames' clock), how many pairs it compensated (both frames' readouts covered by its
+        samples), and how far its stamps lie behind the frames' clock by the pairs' own turns, with
+        its standard error (s; :func:`~covo_gtsam.gyro.clock_offset`; None with too few pairs)."""
         if self.gyro is None:
             return None
-        return {"samples": len(self.gyro.stamps), "span_s": list(self.gyro.span), "pairs": self._gyro_pairs}
+        offset = None
+        if self._turns:
+            a, b, w = (np.array(x) for x in zip(*self._turns))
+            offset = clock_offset(self.gyro, a, b, w)
+        return {"samples": len(self.gyro.stamps), "span_s": list(self.gyro.span), "pairs": self._gyro_pairs,
+                "clock_offset_s": None if offset is None else offset[0],
+                "clock_offset_se_s": None if offset is None else offset[1]}
 
     def self_calibration(self) -> dict:
         """What the run learnt about its sensor without ground truth: the frame clock's period (s),

@@ -26,8 +26,9 @@ with the error sources of a real unsynchronised RGB-D camera, each with a stated
 * bad frames at rate ``bad_frame_rate``: their depth image belongs to an instant
   ``bad_frame_offset_s`` away (a depth image that was delivered with the wrong colour image);
 * with ``gyro_rate_hz`` > 0, a gyroscope in the camera's axes sampling the true angular velocity at
-  that rate with white noise of s.d. ``gyro_noise_rad_s`` per axis, stamped on the frames' clock
-  (as late as the frames' stamps), which the odometry is given.
+  that rate with white noise of s.d. ``gyro_noise_rad_s`` per axis and a constant bias of
+  ``gyro_bias_rad_s`` on each axis (random signs), stamped on the frames' clock (as late as the
+  frames' stamps) and ``gyro_clock_offset_s`` later still, which the odometry is given.
 
 The scene is a cloud of static points in front of the start pose (within ``scene_half_angle_deg``
 of its optical axis, 1-4 m away); each point has a fixed random
@@ -88,6 +89,8 @@ class SequenceSimulationConfig:
     motion_smooth_s: float = 0.02
     gyro_rate_hz: float = 0.0
     gyro_noise_rad_s: float = 0.0
+    gyro_bias_rad_s: float = 0.0
+    gyro_clock_offset_s: float = 0.0
 
     def odometry_defaults(self) -> OdometryConfig:
         """The package's default settings told this sensor's readout (``sensor.rolling_shutter_s``, a
@@ -129,6 +132,8 @@ class SequenceSimulationResult:
     depth_offsets: np.ndarray | None = field(default=None, repr=False)
     #: what the run learnt without ground truth (:meth:`VisualOdometry.self_calibration`)
     self_calibration: dict | None = field(default=None, repr=False)
+    #: the simulated gyroscope as the run saw it (:meth:`VisualOdometry.gyro_summary`; None without one)
+    gyro: dict | None = field(default=None, repr=False)
 
     @property
     def kept_consecutive(self) -> np.ndarray:
@@ -424,7 +429,7 @@ def simulate_sequence(cfg: SequenceSimulationConfig | None = None,
         bases=stacked_bases(kept), consecutive=np.array([s.velocity is not None for s in kept], bool),
         frames=np.array(frames, int).reshape(-1, 2), bad_frames=bad, capture_truth=T_captures,
         stamp_errors=relative_pose_tangent_errors(T_captures, np.array(T_stamps).reshape(-1, 4, 4)),
-        depth_offsets=np.array(stamped), self_calibration=vo.self_calibration())
+        depth_offsets=np.array(stamped), self_calibration=vo.self_calibration(), gyro=vo.gyro_summary())
 
 
 def _gyroscope(cfg: SequenceSimulationConfig, traj: _Motion) -> Gyroscope | None:
@@ -434,8 +439,10 @@ def _gyroscope(cfg: SequenceSimulationConfig, traj: _Motion) -> Gyroscope | None
     if cfg.gyro_rate_hz <= 0:
         return None
     t = np.arange(-cfg.period_s, cfg.frames * cfg.period_s, 1.0 / cfg.gyro_rate_hz)
-    noise = np.random.default_rng([cfg.seed, 2]).normal(0.0, cfg.gyro_noise_rad_s, (len(t), 3))
-    return Gyroscope(t + cfg.stamp_latency_s, traj.angular_velocity(t) + noise)
+    rng = np.random.default_rng([cfg.seed, 2])
+    noise = rng.normal(0.0, cfg.gyro_noise_rad_s, (len(t), 3))
+    bias = cfg.gyro_bias_rad_s * rng.choice([-1.0, 1.0], 3)
+    return Gyroscope(t + cfg.stamp_latency_s + cfg.gyro_clock_offset_s, traj.angular_velocity(t) + noise + bias)
 
 
 def _depth_clock(rng: np.random.Generator, cfg: SequenceSimulationConfig, captures: np.ndarray,
