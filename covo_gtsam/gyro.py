@@ -94,9 +94,10 @@ class Gyroscope:
         seg = self.stamps[max(i - 1, 0):min(j + 1, len(self.stamps))]
         return bool(np.all(np.diff(seg) <= MAX_GAP_S))
 
-    def angular_velocity(self, t: float) -> np.ndarray:
-        """The camera's angular velocity (3,) at ``t`` (rad/s, camera frame), linear between samples."""
-        return np.array([np.interp(t, self.stamps, self.rates[:, i]) for i in range(3)])
+    def angular_velocity(self, t) -> np.ndarray:
+        """The camera's angular velocity (..., 3) at times ``t`` (s, any shape; rad/s, camera frame),
+        linear between samples."""
+        return np.stack([np.interp(t, self.stamps, self.rates[:, i]) for i in range(3)], axis=-1)
 
     def angular_acceleration(self, t: float, span: float = ACCELERATION_SPAN_S) -> np.ndarray:
         """The camera's angular acceleration (3,) at ``t`` (rad/s^2, camera frame): the slope of a
@@ -123,7 +124,7 @@ def interval_means(gyro: Gyroscope, starts: np.ndarray, ends: np.ndarray) -> np.
     w[1:-1:2], w[2:-1:2] = 4.0, 2.0
     w /= w.sum()
     t = starts[:, None] + (ends - starts)[:, None] * s[None]
-    return np.stack([np.interp(t, gyro.stamps, gyro.rates[:, i]) @ w for i in range(3)], axis=-1)
+    return np.einsum("nkj,k->nj", gyro.angular_velocity(t), w)
 
 
 def clock_offset(gyro: Gyroscope, starts, ends, rates) -> tuple[float, float] | None:
@@ -146,9 +147,7 @@ def clock_offset(gyro: Gyroscope, starts, ends, rates) -> tuple[float, float] | 
     curve = c0 - 2 * c1 + c2
     tau = shifts[i] + (0.5 * OFFSET_STEP_S * (c0 - c2) / curve if curve > 0 else 0.0)
     # the mean's change with the shift: the change of the angular velocity over the interval, per its length
-    slope = (np.stack([np.interp(ends + tau, gyro.stamps, gyro.rates[:, k]) for k in range(3)], -1)
-             - np.stack([np.interp(starts + tau, gyro.stamps, gyro.rates[:, k]) for k in range(3)], -1))
-    slope /= (ends - starts)[:, None]
+    slope = (gyro.angular_velocity(ends + tau) - gyro.angular_velocity(starts + tau)) / (ends - starts)[:, None]
     info = float(np.sum(slope**2))
     if not info > 0:
         return None

@@ -892,7 +892,7 @@ class VisualOdometry(DeprecatedStepAccess):
             measured, m, m_ref = known  # m_ref: the intervals the keyframe's own twist was taken over
             change_cov = m**2 * history  # the current frame's twist was taken over these m intervals
             bases["latency"] = (k / max(k - m, 1)) ** 2 * measured + change_cov
-        if gyro:  # the change of the angular velocity across the pair, measured (less the gyroscope's noise)
+        if gyro:  # in place of the history's: the change across the pair, measured (less the gyroscope's noise)
             noise = np.zeros((6, 6))
             noise[:3, :3] = self.config.sensor.gyro_sigma_rad_s**2 * np.eye(3)
             bases["latency"] = known_change_basis(M, compensation.twist_ref, compensation.twist_cur, noise, noise)
