@@ -154,10 +154,10 @@ class SensorConfig:
                                      "sample noise; covo calibrate --gyro fits it)", "rad/s", "non-negative", maximum=10.0)
     depth_scale_sigma: float = number(0.000424, "a frame's depths all scaled by 1 + e (frame-level term)",
                                       "fraction", "non-negative", maximum=1.0)
-    depth_time_factor: float = number(0.259, "error of the colour-depth time offset, times the stamped offset "
+    depth_time_factor: float = number(0.211, "error of the colour-depth time offset, times the stamped offset "
                                       "(frame-level term)", "factor", "non-negative", maximum=100.0)
     depth_time_coherent_factor: float = number(
-        0.297, "the stamped colour-depth offsets' own effect, the pair's two frames together, times this (frame-level "
+        0.332, "the stamped colour-depth offsets' own effect, the pair's two frames together, times this (frame-level "
         "term; 1: the depth images taken at their stamps, uncompensated; none with depth_time_compensation)", "factor",
         "non-negative", maximum=100.0)
     depth_jump_factor: float = number(1.0, "the depth image read whole depth periods earlier or later than at the "
@@ -178,7 +178,8 @@ class SensorConfig:
                                     "from the recent changes' mean, final when the pair is returned")
     rolling_shutter_look_ahead: bool = flag(True, "move a consecutive pair's pose one frame late as if its current "
                                             "frame's rows were moved with the twist the next pair moved them with "
-                                            "(about the twist at the frame's stamp) in place of the pair's own")
+                                            "(about the twist at the frame's stamp) in place of the pair's own, and "
+                                            "build its timing, stamp-jitter and colour-depth terms with that twist")
     angular_acceleration_prior: float = number(
         10.0, "the camera's angular acceleration, RMS over its axes, that the latency and rolling-shutter terms "
         "take until the run has measured a change of its twist (a prior: a hand-held camera)", "rad/s^2",

@@ -89,6 +89,17 @@ def depth_time_basis(G: np.ndarray, X: np.ndarray, twist: np.ndarray) -> np.ndar
     return depth_change_basis(G, X, depth_rates(X, twist))
 
 
+def depth_time_response(G: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``A`` (6, 6) with ``depth_time_basis(G, X, twist) == A @ twist``: the pair's response to a
+    frame's depths read one second late, per unit of the camera's body twist ``[omega, v]``
+    (rad/s, m/s) at that frame."""
+    X = np.asarray(X, dtype=float)
+    g = (G @ (X / X[:, 2:3])[:, :, None])[:, :, 0]  # (N, 6): the response to each depth along its ray
+    a = np.zeros((len(X), 6))  # dZ/dt = a . twist (depth_rates)
+    a[:, 0], a[:, 1], a[:, 5] = -X[:, 1], X[:, 0], -1.0
+    return g.T @ a
+
+
 def depth_period_jump(offset_ref_s: float, offset_cur_s: float, period_s: float) -> float:
     """The change (s) of the colour-depth capture offset from a pair's reference frame to its current
     frame in whole depth-frame periods: ``period_s * round((offset_cur_s - offset_ref_s) / period_s)``

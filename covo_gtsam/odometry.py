@@ -26,7 +26,7 @@ from .depth_drift import DepthDrift, drift_along
 from .errors import ConfigError, CovoError, CovoWarning, EstimationError, InputError
 from .estimator import RelativePoseResult, estimate_relative_pose
 from .frame_errors import (depth_change_basis, depth_period_jump, depth_read_change, depth_scale_basis,
-                           depth_time_basis, depth_time_shift, rolling_shutter_basis, shared_frame_covariance,
+                           depth_time_response, depth_time_shift, rolling_shutter_basis, shared_frame_covariance,
                            transfer_gains)
 from .datasets.images import to_grey
 from .frontend import FrameData, PointPairs, associate_frames, make_orb, prepare_frame
@@ -92,13 +92,28 @@ class _Compensation(NamedTuple):
         return self.accelerations is not None
 
 
+class _FrameTerms(NamedTuple):
+    """What a pair's terms that take the camera's twist at its current frame need besides it: the
+    pair's motion ``T_ref,cur`` (4x4) and the twist at its reference frame (``timing``,
+    ``stamp_jitter``), each frame's weight of the stamps' jitter, the reference frame's colour-depth
+    effect ``h_ref`` (6,) and the current frame's response ``A_cur`` (6x6) to that twist
+    (``depth_time``, ``depth_time_coherent``)."""
+
+    motion: np.ndarray
+    twist_ref: np.ndarray
+    jitter_weights: tuple[float, float]
+    h_ref: np.ndarray
+    A_cur: np.ndarray
+
+
 class _Provisional(NamedTuple):
     """A pair the next pair settles: its step, its reference frame's step (for the pose covariance),
     its motion between the captures, its frame intervals, the adjoint (6x6) its covariance was moved
     from the captures to the stamps with; for its latency term (``sensor.latency_look_ahead``) the
     twist of the pair before it with that twist's noise, and for its current frame's rolling-shutter
     compensation (``sensor.rolling_shutter_look_ahead``) the estimate's response (6x6) to an error
-    of that compensation's twist and what the pair's rows were moved with (None where not settled)."""
+    of that compensation's twist and what the pair's rows were moved with (None where not settled);
+    and what its stamp and colour-depth terms need besides the twist at its current frame."""
 
     step: OdometryStep
     ref_step: OdometryStep
@@ -108,6 +123,7 @@ class _Provisional(NamedTuple):
     twist_before: np.ndarray | None
     noise_before: np.ndarray | None
     shutter: tuple[np.ndarray, _Compensation] | None
+    frame_terms: _FrameTerms | None = None
 
 
 def _trusted_velocity(step: OdometryStep) -> np.ndarray | None:
@@ -467,7 +483,7 @@ class VisualOdometry(DeprecatedStepAccess):
         gains = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp, ref, pairs, gains)
-        step.error_bases, b, shutter = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists,
+        step.error_bases, b, shutter, frame_terms = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists,
                                                          dt, timestamp, r_cur, gains, step.depth_jump_s,
                                                          compensation)
         step.added_covariance = {}
@@ -492,7 +508,7 @@ class VisualOdometry(DeprecatedStepAccess):
             step.added_covariance = {**step.added_covariance, "rolling_shutter": step.error_bases["rolling_shutter"]}
             step.covariance = step.covariance + step.error_bases["rolling_shutter"]
         Ad = self._pose_between_stamps(step, res, ref_step, twists, r_ref, r_cur)
-        self._candidate = self._provisional_pair(step, ref_step, Ad, shutter, compensation)
+        self._candidate = self._provisional_pair(step, ref_step, Ad, shutter, compensation, frame_terms)
         return step
 
     def _bearings_consensus(self, ref: FrameData, frame: FrameData, pairs: PointPairs) -> int:
@@ -725,14 +741,15 @@ class VisualOdometry(DeprecatedStepAccess):
         return Ad
 
     def _provisional_pair(self, step: OdometryStep, ref_step: OdometryStep, Ad: np.ndarray,
-                          shutter: np.ndarray | None, compensation: _Compensation | None
-                          ) -> _Provisional | None:
+                          shutter: np.ndarray | None, compensation: _Compensation | None,
+                          frame_terms: _FrameTerms | None = None) -> _Provisional | None:
         """``step`` as a pair the next pair may settle (:meth:`_settle`): frame to frame, not flagged,
         with its own twist; its latency term with ``sensor.latency_look_ahead`` where the pair before
         has a trusted twist over as many intervals, and its current frame's rolling-shutter
         compensation with ``sensor.rolling_shutter_look_ahead`` where ``shutter`` (the response,
-        6x6) and ``compensation`` (the pair's compensation twists, :meth:`_solve_pair`) are given;
-        None where neither."""
+        6x6) and ``compensation`` (the pair's compensation twists, :meth:`_solve_pair`) are given,
+        and with that look-ahead its stamp and colour-depth terms where ``frame_terms``
+        (:meth:`_error_bases`) is given; None where none of these."""
         sensor = self.config.sensor
         span = self._twist_noise.get(step.timestamp)
         if (self.config.tracking.keyframes or step.flagged or ref_step.flagged or span is None
@@ -749,9 +766,12 @@ class VisualOdometry(DeprecatedStepAccess):
             shutter = None
         else:
             shutter = (shutter, compensation)
-        if twist_before is None and shutter is None:
+        if not sensor.rolling_shutter_look_ahead:
+            frame_terms = None
+        if twist_before is None and shutter is None and frame_terms is None:
             return None
-        return _Provisional(step, ref_step, span.motion, span.intervals, Ad, twist_before, noise_before, shutter)
+        return _Provisional(step, ref_step, span.motion, span.intervals, Ad, twist_before, noise_before, shutter,
+                            frame_terms)
 
     def _settle(self, ref_step: OdometryStep, step: OdometryStep,
                 compensation: _Compensation | None) -> None:
@@ -768,6 +788,9 @@ class VisualOdometry(DeprecatedStepAccess):
         - Its latency term is taken from the change of the twist across it
           (:func:`~covo_gtsam.calibration.central_change_basis`: ``step``'s twist minus the pair
           before's) in place of the recent changes' mean.
+        - Its stamp and colour-depth terms take the camera's twist at its current frame, the one
+          ``step`` moved that frame's rows with, in place of its own pair's mean twist, which
+          belongs half an interval before the frame (docs/derivation.md, "The twist at the frame").
         """
         prov = self._provisional
         span = self._twist_noise.get(step.timestamp)
@@ -788,6 +811,10 @@ class VisualOdometry(DeprecatedStepAccess):
                 added = dict(pair.added_covariance)
                 pair.covariance = pair.covariance - added.pop("rolling_shutter")
                 pair.added_covariance = added
+        if prov.frame_terms is not None:
+            at_frame = (compensation.twist_ref if compensation is not None
+                        else 0.5 * (np.asarray(pair.velocity, dtype=float) + np.asarray(step.velocity, dtype=float)))
+            self._rebase(pair, prov.restamp, self._frame_twist_bases(prov.frame_terms, at_frame))
         if prov.twist_before is not None:
             B = central_change_basis(prov.motion.matrix(), prov.twist_before, step.velocity, prov.noise_before,
                                      span.noise)
@@ -874,9 +901,8 @@ class VisualOdometry(DeprecatedStepAccess):
         step_m = 0.0 if recent is None else float(np.linalg.norm(recent[3:])) * self.config.sensor.frame_interval_s
         bases["span"] = span_basis(step_m, self.config.sensor.frame_intervals(dt))
         if twists is None:
-            return bases, b_cur, None  # no motion: no timing terms
+            return bases, b_cur, None, None  # no motion: no timing terms
         twist_ref, velocity = twists
-        bases["timing"] = stamp_error_basis(M, twist_ref, velocity)
         # the covariance of the twist's change over the pair, from the pairs before this one (over k
         # frame intervals the twist changes k times as much), the latency term's basis; against an
         # older keyframe, the change over the k - m intervals from the keyframe to the last posed
@@ -900,15 +926,11 @@ class VisualOdometry(DeprecatedStepAccess):
         # clock, and then the uncertainty of the clock's phase, fitted to n stamps: 1/n of the variance
         n_ref = ref_step.clock_samples if ref_step.stamp_shift is not None else 0
         n_cur = self._clock.samples if r_cur is not None else 0
-        weights = (1.0 / max(n_ref, 1), 1.0 / max(n_cur, 1))
-        bases["stamp_jitter"] = stamp_error_basis(M, twist_ref, velocity, weights)
-        h_ref = ref.depth_offset * depth_time_basis(G_ref, X_ref, twist_ref)
-        h_cur = frame.depth_offset * depth_time_basis(G_cur, X_cur, velocity)
-        bases["depth_time"] = np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur)  # each frame's offset's error
-        # the offsets' own effect, both frames together; none where the points were moved to their
-        # colour images' times by the stamped offsets (``depth_time_compensation``)
-        h = np.zeros(6) if self.config.sensor.depth_time_compensation else h_ref + h_cur
-        bases["depth_time_coherent"] = np.outer(h, h)
+        # each frame's depths read its stamped colour-depth offset later: through its twist
+        frame_terms = _FrameTerms(M, twist_ref, (1.0 / max(n_ref, 1), 1.0 / max(n_cur, 1)),
+                                  ref.depth_offset * depth_time_response(G_ref, X_ref) @ twist_ref,
+                                  frame.depth_offset * depth_time_response(G_cur, X_cur))
+        bases.update(self._frame_twist_bases(frame_terms, velocity))
         # the depth images read whole periods apart (the nearest depth image switched to a neighbour):
         # as if the current frame's were read half the change later and the reference's half earlier
         j = np.zeros(6)
@@ -943,7 +965,31 @@ class VisualOdometry(DeprecatedStepAccess):
                 if known is not None:
                     B_ref = response(G_ref, X_ref, pairs.uv_ref)
                     bases["rolling_shutter"] += 0.25 * m_ref**2 * B_ref @ history @ B_ref.T
-        return bases, b_cur, shutter
+        return bases, b_cur, shutter, frame_terms
+
+    def _frame_twist_bases(self, terms: _FrameTerms, twist_cur: np.ndarray) -> dict[str, np.ndarray]:
+        """The bases of the terms that take the camera's twist ``twist_cur`` at the current frame:
+        ``timing`` and ``stamp_jitter`` (each frame off its stamp), ``depth_time`` (each frame's
+        colour-depth offset's error on its own: ``h_ref h_ref^T + h_cur h_cur^T``, ``h_f`` the pair's
+        response to that frame's depths read its stamped offset later) and ``depth_time_coherent``
+        (the offsets' own effect, both frames together; none where the points were moved to their
+        colour images' times by the stamped offsets, ``depth_time_compensation``)."""
+        h_ref, h_cur = terms.h_ref, terms.A_cur @ twist_cur
+        h = np.zeros(6) if self.config.sensor.depth_time_compensation else h_ref + h_cur
+        return {"timing": stamp_error_basis(terms.motion, terms.twist_ref, twist_cur),
+                "stamp_jitter": stamp_error_basis(terms.motion, terms.twist_ref, twist_cur, terms.jitter_weights),
+                "depth_time": np.outer(h_ref, h_ref) + np.outer(h_cur, h_cur), "depth_time_coherent": np.outer(h, h)}
+
+    def _rebase(self, step: OdometryStep, restamp: np.ndarray, bases: dict[str, np.ndarray]) -> None:
+        """Replace some of ``step``'s error bases (given between the captures; moved to the stamps by
+        ``restamp``, 6x6) and its covariance by their terms' change."""
+        sigmas = self.config.sensor.term_sigmas()
+        new = dict(step.error_bases)
+        for name, B in bases.items():
+            B = restamp @ B @ restamp.T
+            step.covariance = step.covariance + sigmas[name] ** 2 * (B - new[name])
+            new[name] = B
+        step.error_bases = new
 
     def _twist_change_prior(self) -> np.ndarray:
         """The latency basis (6, 6) until the run has measured a change of its twist: the change over

@@ -91,6 +91,9 @@ class OdometryStep:
     #: False while registering the next frame may still revise ``covariance``, ``pose_covariance``
     #: and ``error_bases["latency"]`` (``sensor.latency_look_ahead``: the latency term is then taken
     #: from the change of the twist across the pair, the next pair's twist minus the one before),
+    #: the bases of the terms driven by the camera's twist at the current frame (``timing``,
+    #: ``stamp_jitter``, ``depth_time``, ``depth_time_coherent``: then built with the twist at the
+    #: frame, the mean of this pair's and the next pair's, in place of this pair's own),
     #: and ``relative`` and ``pose`` (``sensor.rolling_shutter_look_ahead``: the current frame's
     #: compensation with the twist at its stamp, the mean of this pair's and the next pair's)
     settled: bool = True

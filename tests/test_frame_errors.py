@@ -13,6 +13,7 @@ from covo_gtsam.frame_errors import (
     depth_read_change,
     depth_scale_basis,
     depth_time_basis,
+    depth_time_response,
     depth_time_shift,
     rolling_shutter_basis,
     transfer_gains,
@@ -107,6 +108,26 @@ def test_depth_time_shift_and_basis():
     r = estimate_relative_pose(X0, moved, Q0, Q1, initial=res.pose)
     actual = gtsam.Pose3.Logmap(res.pose.between(r.pose))
     assert np.linalg.norm(actual - b * eps) < 0.05 * np.linalg.norm(b * eps)
+
+
+def test_depth_time_response_is_the_estimates_response_per_unit_twist():
+    """``depth_time_response(G, X) @ twist`` is the estimate's response to the depths read one
+    second late under that twist, re-solved with GTSAM (as above) for two twists, and linear:
+    the response to their sum is the sum of the responses."""
+    X0, X1, Q0, Q1, rng = _pair(5)
+    res = estimate_relative_pose(X0, X1, Q0, Q1)
+    T = res.pose.matrix()
+    _, G1 = transfer_gains(T[:3, :3], T[:3, 3], X0, X1, Q0, Q1)
+    A = depth_time_response(G1, X1)
+    assert A.shape == (6, 6)
+    eps = 1e-3
+    twists = [np.array([0.3, 2.0, -0.2, 0.05, 0.0, 0.1]), np.array([-1.0, 0.2, 0.5, 0.0, -0.2, 0.3])]
+    for twist in (*twists, twists[0] + twists[1]):
+        moved = depth_time_shift(X1, twist, -eps)  # depths as if read eps later
+        r = estimate_relative_pose(X0, moved, Q0, Q1, initial=res.pose)
+        actual = gtsam.Pose3.Logmap(res.pose.between(r.pose))
+        assert np.linalg.norm(actual - A @ twist * eps) < 0.05 * np.linalg.norm(A @ twist * eps)
+        np.testing.assert_allclose(A @ twist, depth_time_basis(G1, X1, twist), rtol=1e-12, atol=1e-15)
 
 
 def test_rolling_shutter_basis_is_the_response_to_a_twist_error():

@@ -345,15 +345,25 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
     the moved step.
     A pair is returned with the term's basis once more in its covariance (the error the move takes
     out, at the model's size) and the move takes exactly that out; a pair not moved keeps it.
-    Without the look-ahead the relative pose and covariance stay as returned. (The latency
-    look-ahead, which also revises the covariance, is off.)"""
+    With the look-ahead the terms that take the camera's twist at the current frame (``timing``,
+    ``stamp_jitter`` and the two colour-depth terms) are also built again with the twist the next
+    pair moved that frame's rows with (its reference's: the mean of its own twist and this pair's),
+    moved to the stamps, in place of the pair's own twist, and the covariance changes by exactly
+    their terms' difference. Without the look-ahead the relative pose and covariance stay as
+    returned. (The latency look-ahead, which also revises the covariance, is off.)"""
     from covo_gtsam import odometry
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.steps import StepHistory
 
-    responses, restamps, used = {}, [], {}
+    responses, restamps, used, twist_bases = {}, [], {}, []
     original_bases, original_restamp = VisualOdometry._error_bases, odometry.restamp
     original_solve = VisualOdometry._solve_pair
+    original_twist_bases = VisualOdometry._frame_twist_bases
+
+    def frame_twist_bases(self, terms, twist_cur):
+        out = original_twist_bases(self, terms, twist_cur)
+        twist_bases.append((np.array(twist_cur), out))
+        return out
 
     def solve_pair(self, *args):
         out = original_solve(self, *args)
@@ -372,6 +382,9 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
 
     monkeypatch.setattr(VisualOdometry, "_error_bases", error_bases)
     monkeypatch.setattr(VisualOdometry, "_solve_pair", solve_pair)
+    monkeypatch.setattr(VisualOdometry, "_frame_twist_bases", frame_twist_bases)
+    twist_terms = ("timing", "stamp_jitter", "depth_time", "depth_time_coherent")
+    sigmas = OdometryConfig().sensor.term_sigmas()
     monkeypatch.setattr(odometry, "restamp", restamp)
     seq = TumSequence(sample_dir)
     frames = [(*seq.load(i), seq.timestamps[i], seq.depth_timestamps[i]) for i in range(30)]
@@ -379,21 +392,34 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
         vo = VisualOdometry(seq.camera_name, OdometryConfig().replace(sensor={"rolling_shutter_look_ahead": on,
                                                                              "latency_look_ahead": False}))
         history = StepHistory()
-        steps, returned, covs, moved = [], [], [], []
+        twist_bases.clear()
+        steps, returned, covs, moved, bases = [], [], [], [], []
         for c, d, t, dt in frames:
             n = len(restamps)
             step = history.add(vo.register_frame(c, d, t, depth_timestamp=dt))
             moved.append(restamps[n] if len(restamps) > n else np.eye(6))
             returned.append(step.relative)
             covs.append(None if step.covariance is None else step.covariance.copy())
+            bases.append(step.error_bases)
             steps.append(step)
-        n_moved = n_restamped = 0
+        n_moved = n_restamped = n_twist = 0
         for k, a in enumerate(steps[:-1]):
             if not a.has_relative_pose:
                 continue
             nxt = steps[k + 1]
             S = responses[a.timestamp]
             expected, expected_cov = returned[k], covs[k]
+            if on and nxt.has_relative_pose and nxt.ref_timestamp == a.timestamp and not (a.flagged or nxt.flagged):
+                at_frame = used[nxt.timestamp][0]  # the twist the next pair moved this frame's rows with
+                np.testing.assert_allclose(at_frame, 0.5 * (used[nxt.timestamp][1] + a.velocity), rtol=1e-12,
+                                           atol=1e-12)
+                rebuilt = [out for twist, out in twist_bases if np.array_equal(twist, at_frame)]
+                assert len(rebuilt) == 1 and not np.allclose(at_frame, a.velocity)
+                for name in twist_terms:
+                    np.testing.assert_allclose(a.error_bases[name], moved[k] @ rebuilt[0][name] @ moved[k].T,
+                                               rtol=1e-12, atol=1e-24)
+                    expected_cov = expected_cov + sigmas[name] ** 2 * (a.error_bases[name] - bases[k][name])
+                n_twist += bool(np.any(a.error_bases["depth_time"] != bases[k]["depth_time"]))
             if (on and S is not None and nxt.has_relative_pose and nxt.ref_timestamp == a.timestamp and not nxt.flagged
                     and not (a.depth_jump_s or nxt.depth_jump_s)):
                 (_, c_cur), (c_ref_next, c_cur_next) = used[a.timestamp], used[nxt.timestamp]
@@ -401,7 +427,7 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
                 assert not np.allclose(c_cur, a.velocity)
                 move = moved[k] @ S @ (c_ref_next - c_cur)
                 expected = returned[k].compose(gtsam.Pose3.Expmap(move))
-                expected_cov = covs[k] - a.error_bases["rolling_shutter"]
+                expected_cov = expected_cov - a.error_bases["rolling_shutter"]
                 assert np.abs(a.error_bases["rolling_shutter"]).max() > 1e-3 * np.abs(a.covariance).max()
                 assert np.linalg.norm(move) > 1e-6
                 n_moved += 1
@@ -411,7 +437,7 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
             ref = next(s for s in steps if s.timestamp == a.ref_timestamp)
             np.testing.assert_allclose(a.pose.matrix(), ref.pose.compose(a.relative).matrix(), atol=1e-12)
             np.testing.assert_array_equal(history.steps[k].relative.matrix(), a.relative.matrix())
-        assert n_moved >= (20 if on else 0) and n_restamped >= (5 if on else 0)
+        assert n_moved >= (20 if on else 0) and n_restamped >= (5 if on else 0) and n_twist >= (20 if on else 0)
 
 
 @pytest.mark.parametrize("frame_clock", [False, True])
