@@ -483,9 +483,9 @@ class VisualOdometry(DeprecatedStepAccess):
         gains = transfer_gains(M[:3, :3], M[:3, 3], X_ref, X_cur, pairs.Q_ref, pairs.Q_cur)
         if twists is not None:  # the span and noise of the frame's twist, for the latency term's history
             self._twist_noise[timestamp] = self._twist_span(res, ref_step, dt, timestamp, ref, pairs, gains)
-        step.error_bases, b, shutter, frame_terms = self._error_bases(res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists,
-                                                         dt, timestamp, r_cur, gains, step.depth_jump_s,
-                                                         compensation)
+        step.error_bases, b, shutter, frame_terms = self._error_bases(
+            res.pose, X_ref, X_cur, pairs, ref, frame, ref_step, twists, dt, timestamp, r_cur, gains,
+            step.depth_jump_s, compensation)
         step.added_covariance = {}
         try:
             step.covariance = self.config.sensor_covariance(res.covariance, dt, step.error_bases)
@@ -528,7 +528,7 @@ class VisualOdometry(DeprecatedStepAccess):
         """``res`` with its translation moved by the depth's drift (:mod:`covo_gtsam.depth_drift`)
         and ``step``'s covariance grown by that estimate's own: a kept pair's depth-free estimates
         (``check``) join the drift's window first, a flagged pair's do not, each weighted by the
-        pair's covariance as it then stands (with the latency term the next frame may still settle).
+        pair's covariance as it then stands (with the terms the next frame may still settle).
         Off in keyframe mode."""
         if not (self._drift.enabled and dt > 0):  # a pair without an interval gets none of the drift
             return res
@@ -811,7 +811,8 @@ class VisualOdometry(DeprecatedStepAccess):
                 added = dict(pair.added_covariance)
                 pair.covariance = pair.covariance - added.pop("rolling_shutter")
                 pair.added_covariance = added
-        if prov.frame_terms is not None:
+        # (not next to a pair whose depth images were read a period apart: its twist is what that corrupts)
+        if prov.frame_terms is not None and not (pair.depth_jump_s or step.depth_jump_s):
             at_frame = (compensation.twist_ref if compensation is not None
                         else 0.5 * (np.asarray(pair.velocity, dtype=float) + np.asarray(step.velocity, dtype=float)))
             self._rebase(pair, prov.restamp, self._frame_twist_bases(prov.frame_terms, at_frame))
@@ -877,11 +878,13 @@ class VisualOdometry(DeprecatedStepAccess):
     def _error_bases(self, T: gtsam.Pose3, X_ref: np.ndarray, X_cur: np.ndarray, pairs, ref: FrameData,
                      frame: FrameData, ref_step: OdometryStep, twists: tuple[np.ndarray, np.ndarray] | None,
                      dt: float, timestamp: float, r_cur: float | None, gains: tuple[np.ndarray, np.ndarray],
-                     jump: float, compensation: _Compensation | None = None) -> tuple[dict, np.ndarray, np.ndarray | None]:
+                     jump: float, compensation: _Compensation | None = None
+                     ) -> tuple[dict, np.ndarray, np.ndarray | None, _FrameTerms | None]:
         """The pair's basis of each frame-level error term (:mod:`covo_gtsam.frame_errors`), its
         response ``b`` (6,) to the current frame's depths scaled by ``1 + e`` (per unit ``e``) and
         its response (6x6) to an error of the current frame's rolling-shutter twist (None without
-        the compensation or without a twist at the reference);
+        the compensation or without a twist at the reference), and what the terms driven by the
+        twist at the current frame need besides it (:class:`_FrameTerms`; None without motion);
         ``twists`` are the camera's twists at the two frames
         (:func:`~covo_gtsam.rolling_shutter.frame_twists`), None without motion; ``r_cur`` the current
         frame's move to its stamp (:meth:`_capture_interval`); ``gains`` the estimate's response to

@@ -352,6 +352,7 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
     their terms' difference. Without the look-ahead the relative pose and covariance stay as
     returned. (The latency look-ahead, which also revises the covariance, is off.)"""
     from covo_gtsam import odometry
+    from covo_gtsam.calibration import stamp_error_basis
     from covo_gtsam.datasets.tum import TumSequence
     from covo_gtsam.steps import StepHistory
 
@@ -362,7 +363,7 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
 
     def frame_twist_bases(self, terms, twist_cur):
         out = original_twist_bases(self, terms, twist_cur)
-        twist_bases.append((np.array(twist_cur), out))
+        twist_bases.append((np.array(twist_cur), out, terms))
         return out
 
     def solve_pair(self, *args):
@@ -402,7 +403,7 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
             covs.append(None if step.covariance is None else step.covariance.copy())
             bases.append(step.error_bases)
             steps.append(step)
-        n_moved = n_restamped = n_twist = 0
+        n_moved = n_restamped = n_twist = n_ref_checked = 0
         for k, a in enumerate(steps[:-1]):
             if not a.has_relative_pose:
                 continue
@@ -413,10 +414,27 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
                 at_frame = used[nxt.timestamp][0]  # the twist the next pair moved this frame's rows with
                 np.testing.assert_allclose(at_frame, 0.5 * (used[nxt.timestamp][1] + a.velocity), rtol=1e-12,
                                            atol=1e-12)
-                rebuilt = [out for twist, out in twist_bases if np.array_equal(twist, at_frame)]
+                rebuilt = [(out, terms) for twist, out, terms in twist_bases if np.array_equal(twist, at_frame)]
                 assert len(rebuilt) == 1 and not np.allclose(at_frame, a.velocity)
+                out, terms = rebuilt[0]
+                # what the terms were given besides that twist: the pair's own motion between the
+                # captures (its twist over the interval) and, after a trusted pair, the twist at the
+                # reference frame, the mean of the two pairs' twists; the stamp terms as
+                # calibration.stamp_error_basis has them with those twists
+                xi = gtsam.Pose3.Logmap(gtsam.Pose3(terms.motion))
+                c = float(xi @ a.velocity / (a.velocity @ a.velocity))
+                np.testing.assert_allclose(xi, c * a.velocity, rtol=1e-9, atol=1e-12)
+                assert 0.02 < c < 0.05  # the interval, about 1/30 s
+                prev = steps[k - 1]
+                if prev.has_relative_pose and not prev.flagged and prev.velocity is not None:
+                    np.testing.assert_allclose(terms.twist_ref, 0.5 * (prev.velocity + a.velocity), rtol=1e-12,
+                                               atol=1e-12)
+                    np.testing.assert_allclose(
+                        out["timing"], stamp_error_basis(terms.motion, 0.5 * (prev.velocity + a.velocity), at_frame),
+                        rtol=1e-12, atol=1e-24)
+                    n_ref_checked += 1
                 for name in twist_terms:
-                    np.testing.assert_allclose(a.error_bases[name], moved[k] @ rebuilt[0][name] @ moved[k].T,
+                    np.testing.assert_allclose(a.error_bases[name], moved[k] @ out[name] @ moved[k].T,
                                                rtol=1e-12, atol=1e-24)
                     expected_cov = expected_cov + sigmas[name] ** 2 * (a.error_bases[name] - bases[k][name])
                 n_twist += bool(np.any(a.error_bases["depth_time"] != bases[k]["depth_time"]))
@@ -438,6 +456,7 @@ def test_the_next_frame_moves_a_pairs_pose_to_the_twist_the_next_pair_compensate
             np.testing.assert_allclose(a.pose.matrix(), ref.pose.compose(a.relative).matrix(), atol=1e-12)
             np.testing.assert_array_equal(history.steps[k].relative.matrix(), a.relative.matrix())
         assert n_moved >= (20 if on else 0) and n_restamped >= (5 if on else 0) and n_twist >= (20 if on else 0)
+        assert n_ref_checked >= (20 if on else 0)
 
 
 @pytest.mark.parametrize("frame_clock", [False, True])
