@@ -929,11 +929,13 @@ class VisualOdometry(DeprecatedStepAccess):
         # clock, and then the uncertainty of the clock's phase, fitted to n stamps: 1/n of the variance
         n_ref = ref_step.clock_samples if ref_step.stamp_shift is not None else 0
         n_cur = self._clock.samples if r_cur is not None else 0
-        # each frame's depths read its stamped colour-depth offset later: through its twist
-        frame_terms = _FrameTerms(M, twist_ref, (1.0 / max(n_ref, 1), 1.0 / max(n_cur, 1)),
-                                  ref.depth_offset * depth_time_response(G_ref, X_ref) @ twist_ref,
+        # each frame's depths read its stamped colour-depth offset later: through its twist (with a
+        # gyroscope, its angular velocity at each frame, as the rows were moved with)
+        at_ref, at_cur = (compensation.twist_ref, compensation.twist_cur) if gyro else (twist_ref, velocity)
+        frame_terms = _FrameTerms(M, at_ref, (1.0 / max(n_ref, 1), 1.0 / max(n_cur, 1)),
+                                  ref.depth_offset * depth_time_response(G_ref, X_ref) @ at_ref,
                                   frame.depth_offset * depth_time_response(G_cur, X_cur))
-        bases.update(self._frame_twist_bases(frame_terms, velocity))
+        bases.update(self._frame_twist_bases(frame_terms, at_cur))
         # the depth images read whole periods apart (the nearest depth image switched to a neighbour):
         # as if the current frame's were read half the change later and the reference's half earlier
         j = np.zeros(6)

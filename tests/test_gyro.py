@@ -198,6 +198,42 @@ def test_the_last_pair_a_gyroscope_covers_keeps_its_angular_velocity_when_the_ne
     assert np.linalg.norm(cut.errors[k + 1] - full.errors[k + 1]) > 1e-4  # (50 is compensated without it)
 
 
+def test_a_gyroscope_pairs_stamp_and_colour_depth_terms_take_its_angular_velocity_at_both_frames(monkeypatch):
+    """Where the gyroscope covers a pair, the terms driven by the camera's twist at its frames
+    (``timing``, ``stamp_jitter`` and the colour-depth terms) take the twists its rows were moved
+    with, the gyroscope's angular velocity at each frame, as returned; when the next pair settles
+    it, the current frame's is the one that pair moved the frame's rows with. (With the pairs'
+    mean twists at return, the reference frame would keep them while the current frame took the
+    gyroscope's at settling.)"""
+    from covo_gtsam.odometry import VisualOdometry
+
+    calls, used = [], []
+    original_bases, original_solve = VisualOdometry._frame_twist_bases, VisualOdometry._solve_pair
+
+    def frame_twist_bases(self, terms, twist_cur):
+        calls.append((terms, np.array(twist_cur)))
+        return original_bases(self, terms, twist_cur)
+
+    def solve_pair(self, *args):
+        out = original_solve(self, *args)
+        used.append(out[4])
+        return out
+
+    monkeypatch.setattr(VisualOdometry, "_frame_twist_bases", frame_twist_bases)
+    monkeypatch.setattr(VisualOdometry, "_solve_pair", solve_pair)
+    _readout_run(200.0, frames=30)
+    measured = [c for c in used if c is not None and c.measured]
+    assert len(measured) >= 25
+    returned = [(terms, tw) for terms, tw in calls
+                if any(np.array_equal(terms.twist_ref, c.twist_ref) for c in measured)]
+    assert len(returned) >= 25
+    for terms, twist_cur in returned:
+        c = next(c for c in measured if np.array_equal(terms.twist_ref, c.twist_ref))
+        assert any(np.array_equal(twist_cur, x) for x in (c.twist_cur, *(m.twist_ref for m in measured)))
+    # as returned, the current frame's twist is the gyroscope-compensated one of the pair itself
+    assert sum(any(np.array_equal(tw, c.twist_cur) for c in measured) for _, tw in returned) >= 25
+
+
 def _reference_gyro(sample_dir, path, smooth_s: float = 0.02) -> None:
     """A gyroscope file from a sequence's ground truth: the angular velocity of its motion smoothed
     over ``smooth_s``, at 200 Hz, on the ground truth's clock (which TUM aligns with the frames')."""
