@@ -95,9 +95,8 @@ def depth_time_response(G: np.ndarray, X: np.ndarray) -> np.ndarray:
     (rad/s, m/s) at that frame."""
     X = np.asarray(X, dtype=float)
     g = (G @ (X / X[:, 2:3])[:, :, None])[:, :, 0]  # (N, 6): the response to each depth along its ray
-    a = np.zeros((len(X), 6))  # dZ/dt = a . twist (depth_rates)
-    a[:, 0], a[:, 1], a[:, 5] = -X[:, 1], X[:, 0], -1.0
-    return g.T @ a
+    rates = np.stack([depth_rates(X, unit) for unit in np.eye(6)], axis=1)  # (N, 6): dZ/dt per unit twist
+    return g.T @ rates
 
 
 def depth_period_jump(offset_ref_s: float, offset_cur_s: float, period_s: float) -> float:

@@ -819,9 +819,7 @@ class VisualOdometry(DeprecatedStepAccess):
         if prov.twist_before is not None:
             B = central_change_basis(prov.motion.matrix(), prov.twist_before, step.velocity, prov.noise_before,
                                      span.noise)
-            B = prov.restamp @ B @ prov.restamp.T
-            pair.covariance = pair.covariance + self.config.sensor.latency_sigma_s**2 * (B - pair.error_bases["latency"])
-            pair.error_bases = {**pair.error_bases, "latency": B}
+            self._rebase(pair, prov.restamp, {"latency": B})
         pair.pose_covariance = compose_covariance(prov.ref_step.pose, prov.ref_step.pose_covariance, pair.relative,
                                                   pair.covariance)
 
