@@ -38,6 +38,10 @@ SIM = SequenceSimulationConfig(period_s=1 / 29.7, stamp_jitter_s=0.002, stamp_la
                                bad_frame_rate=0.05)
 
 
+#: the rigid3d gate (chi2(3)) of the fits that show what the default gate's (its 99 % quantile) selection
+#: adds: 1.4e-6 of chi2(3) lies beyond it
+WIDE_GATE = 30.0
+
 #: faster turns (rad/s, the angular speed's bound) the fitted terms are checked on
 FASTER = (4.0, 6.0)
 #: slower turns (rad/s) the fitted terms and the defaults are checked on
@@ -139,6 +143,36 @@ def offset_rows(seeds: range, frames: int) -> list[str]:
                                 nees(q.errors[m, :3], q.covariances[m][:, :3, :3]).mean()))
         rows.append(f"| {speed:g} | {mean_sd(coherent)} | {mean_sd(factor)} | {mean_sd([c[0] for c in compensated])} / "
                     f"{mean_sd([c[1] for c in compensated])} |")
+    return rows
+
+
+#: the sensor of the fit above with the stamps not delayed, less one source at a time, and the odometry's
+#: settings changed (the coherent colour-depth factor's excess over 1: which source or stage it comes with)
+FACTOR_SOURCES = {"every source": ({}, {}), "no readout": ({"readout_s": 0.0}, {}),
+                  "no stamp jitter": ({"stamp_jitter_s": 0.0}, {}),
+                  "no depth-scale error": ({"depth_scale_sigma": 0.0}, {}),
+                  "colour-depth offsets and readout only": ({"stamp_jitter_s": 0.0, "depth_scale_sigma": 0.0}, {}),
+                  "every source, a noiseless 1 kHz gyroscope": ({"gyro_rate_hz": 1000.0}, {}),
+                  f"every source, the rigid3d gate at chi2 {WIDE_GATE:g}": (
+                      {}, {"frontend": {"ransac_chi2": WIDE_GATE}}),
+                  "every source, no outlier rejection": ({}, {"frontend": {"outlier_rejection": "none"}})}
+
+
+def factor_source_rows(seeds: range, frames: int) -> list[str]:
+    """The two colour-depth factors and kappa fitted against the truth (stamps not delayed, no bad
+    frame, the odometry told the true noise) with the error sources and odometry settings of
+    :data:`FACTOR_SOURCES`; with the gyroscope, the rows are moved with the true angular velocity at
+    each frame."""
+    rows = []
+    for label, (change, settings) in FACTOR_SOURCES.items():
+        fits = []
+        for seed in seeds:
+            cfg = dataclasses.replace(SIM, frames=frames, seed=seed, bad_frame_rate=0.0, stamp_latency_s=0.0, **change)
+            truth = TRUTH if cfg.readout_s > 0 else TRUTH.replace(sensor={"rolling_shutter_s": 0.0})
+            fits.append(simulate_sequence(cfg, truth.replace(**settings)).fit_terms())
+        rows.append(f"| {label} | {mean_sd([f.sigmas['depth_time_coherent'] for f in fits])} | "
+                    f"{mean_sd([f.sigmas['depth_time'] for f in fits])} | "
+                    f"{mean_sd([f.correlation_factor for f in fits])} |")
     return rows
 
 
@@ -295,10 +329,13 @@ def main() -> None:
         fits = {}
         # (and once with the poses not moved by the next twist: the rolling-shutter term's model of the
         # compensation's error with the pair's own twist)
-        for suffix, latency, ahead in (("", cfg.stamp_latency_s, True), ("0", 0.0, True),
-                                       ("_own", cfg.stamp_latency_s, False)):
+        # (and once with the outlier rejection's gate far out: what its selection adds to the fit)
+        for suffix, latency, ahead, gate in (("", cfg.stamp_latency_s, True, None), ("0", 0.0, True, None),
+                                             ("_own", cfg.stamp_latency_s, False, None),
+                                             ("_gate", cfg.stamp_latency_s, True, WIDE_GATE)):
+            frontend = {} if gate is None else {"ransac_chi2": gate}
             q = simulate_sequence(dataclasses.replace(cfg, bad_frame_rate=0.0, stamp_latency_s=latency),
-                                  TRUTH.replace(sensor={"rolling_shutter_look_ahead": ahead}))
+                                  TRUTH.replace(sensor={"rolling_shutter_look_ahead": ahead}, frontend=frontend))
             fit = q.fit_terms()
             rec.setdefault("scale" + suffix, []).append(100 * fit.sigmas["depth_scale"])
             rec.setdefault("dtime" + suffix, []).append(fit.sigmas["depth_time"])
@@ -324,6 +361,7 @@ def main() -> None:
     lag = {speed: [delay_parts(seed, args.frames, speed) for seed in lag_seeds] for speed in (2.0, *FASTER)}
     depth_clock = depth_clock_rows(lag_seeds, args.frames)
     offsets = offset_rows(lag_seeds, args.frames)
+    factor_sources = factor_source_rows(range(args.seeds), args.frames)
     drift = drift_rows(lag_seeds, args.frames)
     drift_cost = drift_cost_rows(lag_seeds, args.frames)
     c = SIM
@@ -346,24 +384,29 @@ def main() -> None:
              "## Recovered by the maximum-likelihood fit against the truth", "",
              "The per-point model told the true pixel and depth noise; kappa, the frame term and every "
              "frame-level term fitted on the consecutive pairs.", "",
-             "| term | injected / expected | fitted | fitted, stamps not delayed (latency 0 injected) |",
-             "|---|---|---|---|",
+             f"The last column: the stamps delayed, the outlier rejection's gate at chi2 {WIDE_GATE:g} in place of "
+             f"its 99 % quantile ({DEFAULTS.frontend.ransac_chi2:g}; docs/derivation.md, \"The colour-depth factors "
+             "and the outlier rejection\").", "",
+             "| term | injected / expected | fitted | fitted, stamps not delayed (latency 0 injected) | fitted, gate "
+             f"at chi2 {WIDE_GATE:g} |",
+             "|---|---|---|---|---|",
              f"| depth scale (%) | {100 * c.depth_scale_sigma:g} | {mean_sd(rec['scale'])} | "
-             f"{mean_sd(rec['scale0'])} |",
+             f"{mean_sd(rec['scale0'])} | {mean_sd(rec['scale_gate'])} |",
              "| colour-depth offsets' own effect (coherent factor) | 1 (the stamped offsets are the true ones, "
-             f"uncompensated) | {mean_sd(rec['dcoh'])} | {mean_sd(rec['dcoh0'])} |",
+             f"uncompensated) | {mean_sd(rec['dcoh'])} | {mean_sd(rec['dcoh0'])} | {mean_sd(rec['dcoh_gate'])} |",
              "| error of each frame's colour-depth offset (independent factor) | 0 (the stamped offsets are the true "
-             f"ones) | {mean_sd(rec['dtime'])} | {mean_sd(rec['dtime0'])} |",
+             f"ones) | {mean_sd(rec['dtime'])} | {mean_sd(rec['dtime0'])} | {mean_sd(rec['dtime_gate'])} |",
              f"| rolling-shutter residual factor | below 1 (the poses moved by the next twist, the default, take "
-             f"most of the compensation's error out) | {mean_sd(rec['rs'])} | {mean_sd(rec['rs0'])} |",
+             f"most of the compensation's error out) | {mean_sd(rec['rs'])} | {mean_sd(rec['rs0'])} | "
+             f"{mean_sd(rec['rs_gate'])} |",
              f"| rolling-shutter residual factor, poses not moved (`rolling_shutter_look_ahead` false) | about 1 "
-             f"(the model's size) | {mean_sd(rec['rs_own'])} | — |",
+             f"(the model's size) | {mean_sd(rec['rs_own'])} | — | — |",
              f"| timing (ms) | the clock's residual, {mean_sd(rec['clock_err'])} | {mean_sd(rec['timing'])} | "
-             f"{mean_sd(rec['timing0'])} |",
+             f"{mean_sd(rec['timing0'])} | {mean_sd(rec['timing_gate'])} |",
              f"| latency (ms) | {1e3 * c.stamp_latency_s:g} (one delay for all stamps) | {mean_sd(rec['latency'])} | "
-             f"{mean_sd(rec['latency0'])} |",
-             f"| kappa | 1 | {mean_sd(rec['kappa'])} | {mean_sd(rec['kappa0'])} |",
-             f"| kappa, poses not moved | 1 | {mean_sd(rec['kappa_own'])} | — |", "",
+             f"{mean_sd(rec['latency0'])} | {mean_sd(rec['latency_gate'])} |",
+             f"| kappa | 1 | {mean_sd(rec['kappa'])} | {mean_sd(rec['kappa0'])} | {mean_sd(rec['kappa_gate'])} |",
+             f"| kappa, poses not moved | 1 | {mean_sd(rec['kappa_own'])} | — | — |", "",
              "## The fitted terms on a slower and a faster turn", "",
              f"The terms fitted above (stamps delayed, angular speed up to {c.max_angular_speed:g} rad/s), checked on "
              "the same sensor and seeds turning slower and faster (pairs of consecutive frames; a check of the "
@@ -417,6 +460,15 @@ def main() -> None:
              "| angular speed up to (rad/s) | coherent factor, uncompensated | independent factor, uncompensated | "
              "ANEES t / r, compensated |",
              "|---|---|---|---|", *offsets, "",
+             "### The colour-depth factors by error source", "",
+             "The fit of the table above with the stamps not delayed (its last column), less one error source at a "
+             "time, and with the odometry's outlier rejection off: where the coherent factor's excess over 1 comes "
+             "from. With the gyroscope the rows are moved with the true angular velocity at each frame (and its "
+             "change over the readout) instead of the pairs' twists. docs/derivation.md (\"The colour-depth "
+             "factors and the outlier rejection\") has what the rows show. Mean ± s.d. over "
+             f"{args.seeds} seeds of {args.frames} frames.", "",
+             "| error sources | coherent factor (1 expected) | independent factor (0 expected) | kappa (1 expected) |",
+             "|---|---|---|---|", *factor_sources, "",
              "## Depth images on their own clock", "",
              f"Depth images captured on a clock {100 * (DEPTH_CLOCK - 1):g} % slower than the colour images' "
              "(33.333 ms), stamped with 2 ms of jitter like them, each colour frame taking the depth image with the "
